@@ -1,0 +1,20 @@
+# Source me: the environment of the built workspace (ROS, .venv, install/), loopback-only DDS.
+# shellcheck shell=bash
+_stepper_root=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
+# Fast DDS multicasts discovery on every interface by default; keep it on this machine.
+# On a robot with several hosts, export ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET (see README).
+export ROS_AUTOMATIC_DISCOVERY_RANGE=${ROS_AUTOMATIC_DISCOVERY_RANGE:-LOCALHOST}
+if [ -f /opt/ros/jazzy/setup.bash ] && [ "${STEPPER_FORCE_PIP_ROS:-0}" != 1 ]; then
+    source /opt/ros/jazzy/setup.bash
+else
+    export AMENT_PREFIX_PATH="$_stepper_root/.venv${AMENT_PREFIX_PATH:+:$AMENT_PREFIX_PATH}"
+fi
+if [ -d "$_stepper_root/.venv/bin" ]; then
+    export VIRTUAL_ENV="$_stepper_root/.venv"
+    export PATH="$_stepper_root/.venv/bin:$PATH"
+fi
+if [ -z "${STEPPER_NO_WORKSPACE:-}" ] && [ -f "$_stepper_root/install/local_setup.bash" ]; then
+    source "$_stepper_root/install/local_setup.bash"
+fi
+export PYTHONUNBUFFERED=1
+unset _stepper_root

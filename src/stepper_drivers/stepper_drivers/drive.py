@@ -1,0 +1,250 @@
+"""The one small interface between the generic ROS node layer and a vendor drive.
+
+No rclpy here and nothing below it: a vendor module implements `Bus` (one link: a TCP connection,
+a serial line, a CAN bus) and `Drive` (one drive on that link) and raises the exceptions below.
+Every method is blocking; the node layer serialises access to one bus with a lock, so vendor code
+needs no locking of its own unless it runs background threads (CANopen callbacks).
+
+Drive-side units only: steps, steps/s (Hz), steps/s^2 (Hz/s). SI conversion lives in `units.py`.
+"""
+
+from __future__ import annotations
+
+import abc
+import dataclasses
+import enum
+from typing import Any, Callable, Mapping
+
+
+class DriveError(Exception):
+    """A drive refused or could not carry out a command (the link itself is fine)."""
+
+
+class LinkError(DriveError):
+    """The link is down or a transaction got no (valid) answer: the node reconnects."""
+
+
+class RefusedError(DriveError):
+    """The drive cannot do this at all (for example X-MIND K fault reset). Message says why."""
+
+
+class State(str, enum.Enum):
+    """CiA 402 state names (as canopen's p402 spells them), plus DISCONNECTED.
+
+    Vendors without CiA 402 map their own states onto these.
+    """
+
+    NOT_READY_TO_SWITCH_ON = 'NOT READY TO SWITCH ON'
+    SWITCH_ON_DISABLED = 'SWITCH ON DISABLED'
+    READY_TO_SWITCH_ON = 'READY TO SWITCH ON'
+    SWITCHED_ON = 'SWITCHED ON'
+    OPERATION_ENABLED = 'OPERATION ENABLED'
+    QUICK_STOP_ACTIVE = 'QUICK STOP ACTIVE'
+    FAULT_REACTION_ACTIVE = 'FAULT REACTION ACTIVE'
+    FAULT = 'FAULT'
+    UNKNOWN = 'UNKNOWN'
+    DISCONNECTED = 'DISCONNECTED'
+
+
+class HomingState(str, enum.Enum):
+    IDLE = 'IDLE'            # no homing requested since start / since last result was read
+    RUNNING = 'RUNNING'
+    ATTAINED = 'ATTAINED'
+    ERROR = 'ERROR'
+
+
+@dataclasses.dataclass
+class DriveState:
+    """One snapshot of a drive, read by `Drive.read_state()`; drive units."""
+
+    state: State = State.UNKNOWN
+    enabled: bool = False             # power stage on, holding torque
+    moving: bool = False
+    target_reached: bool = False
+    homed: bool = False               # position is referenced
+    homing: HomingState = HomingState.IDLE
+    fault: bool = False
+    fault_code: int = 0
+    fault_text: str = ''
+    alarms: tuple[str, ...] = ()      # active alarms/warnings in the manual's words
+    mode: str = ''                    # e.g. 'PROFILE POSITION', 'PROFILE VELOCITY', 'HOMING'
+    status_word: int = 0              # raw status word (0 where the drive has none)
+    position_steps: int = 0
+    velocity_steps_s: float = 0.0
+    velocity_valid: bool = True       # False where the drive cannot report velocity
+    position_estimated: bool = False  # True where position is estimated (X-MIND K while busy)
+    effort: float | None = None       # motor current in A where the drive reports it
+
+
+@dataclasses.dataclass(frozen=True)
+class Motion:
+    """Profile for a move, in drive units."""
+
+    velocity_steps_s: float
+    acceleration_steps_s2: float
+    deceleration_steps_s2: float
+
+
+@dataclasses.dataclass(frozen=True)
+class Homing:
+    """Homing configuration, in drive units (the method number is the drive's own)."""
+
+    method: int
+    offset_steps: int
+    speed_search_steps_s: float
+    speed_zero_steps_s: float
+    acceleration_steps_s2: float
+
+
+@dataclasses.dataclass(frozen=True)
+class RegisterType:
+    name: str
+    bits: int
+    signed: bool
+
+    def check(self, value: int) -> int:
+        lo, hi = (-(1 << (self.bits - 1)), (1 << (self.bits - 1)) - 1) if self.signed \
+            else (0, (1 << self.bits) - 1)
+        if not lo <= value <= hi:
+            raise DriveError(f'value {value} out of range for {self.name} ({lo}..{hi})')
+        return value
+
+
+REGISTER_TYPES: Mapping[str, RegisterType] = {
+    t.name: t for t in (
+        RegisterType('u8', 8, False), RegisterType('i8', 8, True),
+        RegisterType('u16', 16, False), RegisterType('i16', 16, True),
+        RegisterType('u32', 32, False), RegisterType('i32', 32, True),
+        RegisterType('u64', 64, False), RegisterType('i64', 64, True),
+    )
+}
+
+
+def register_type(name: str) -> RegisterType:
+    try:
+        return REGISTER_TYPES[name.lower()]
+    except KeyError:
+        raise DriveError(
+            f'unknown data type {name!r}; allowed: {", ".join(REGISTER_TYPES)}') from None
+
+
+class Bus(abc.ABC):
+    """One link. `open()` raises LinkError with a message naming the port/host on failure."""
+
+    description: str = ''       # e.g. 'modbus tcp 127.0.0.1:1502', used in logs and diagnostics
+    errors: int = 0             # transactions that failed (timeout, CRC, exception reply)
+    transactions: int = 0
+
+    @abc.abstractmethod
+    def open(self) -> None: ...
+
+    @abc.abstractmethod
+    def close(self) -> None: ...
+
+    @property
+    @abc.abstractmethod
+    def is_open(self) -> bool: ...
+
+    def counters(self) -> dict[str, int]:
+        """Link counters shown in status and diagnostics; vendors may add their own keys."""
+        return {'transactions': self.transactions, 'errors': self.errors}
+
+
+class Drive(abc.ABC):
+    """One drive on a bus. Construct with the bus, the drive's name and its vendor parameters.
+
+    Contract for every implementation:
+    - `connect()` reads identity and state, never enables or moves anything.
+    - `enable()` first sets the target to the actual position, so nothing moves.
+    - Commands are checked by the node layer (limits, NaN); the drive checks its own ranges.
+    - Anything the drive cannot do raises RefusedError with the reason for the user.
+    """
+
+    def __init__(self, bus: Bus, name: str, params: Mapping[str, Any]):
+        self.bus = bus
+        self.name = name
+        self.params = params
+
+    # Life cycle -----------------------------------------------------------------------------
+    @abc.abstractmethod
+    def connect(self) -> dict[str, str]:
+        """Check the drive answers; return identity key/values for diagnostics."""
+
+    @abc.abstractmethod
+    def read_state(self) -> DriveState: ...
+
+    # Power stage ----------------------------------------------------------------------------
+    @abc.abstractmethod
+    def enable(self) -> None:
+        """Bring the drive to OPERATION ENABLED (or its equivalent) without moving."""
+
+    @abc.abstractmethod
+    def disable(self) -> None: ...
+
+    # Motion -----------------------------------------------------------------------------------
+    @abc.abstractmethod
+    def move_to(self, target_steps: int, motion: Motion) -> None:
+        """Start an absolute move; returns once the drive has accepted it."""
+
+    @abc.abstractmethod
+    def set_velocity(self, velocity_steps_s: float, motion: Motion) -> None:
+        """Run at a velocity (0 = ramp to standstill); the node layer runs the watchdog."""
+
+    @abc.abstractmethod
+    def stop(self, quick: bool = False) -> None:
+        """Controlled stop with the profile deceleration (quick: the drive's fastest stop)."""
+
+    @abc.abstractmethod
+    def start_homing(self, homing: Homing) -> str:
+        """Start the homing (or re-reference); progress via read_state().homing.
+
+        Returns a note for the service message (e.g. 'RD4 has no homing run: preset used').
+        """
+
+    # Maintenance ----------------------------------------------------------------------------
+    @abc.abstractmethod
+    def fault_reset(self) -> str:
+        """Clear faults the drive allows to clear; return what remains ('' when none)."""
+
+    @abc.abstractmethod
+    def save_params(self) -> str:
+        """Store parameters in non-volatile memory; verify where possible; return a note."""
+
+    @abc.abstractmethod
+    def read_register(self, address: str, data_type: str) -> int: ...
+
+    @abc.abstractmethod
+    def write_register(self, address: str, data_type: str, value: int) -> None: ...
+
+    def close(self) -> None:
+        """Release per-drive resources (the bus is closed by the node)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class ParamSpec:
+    """A vendor-specific parameter: the node layer declares and validates it.
+
+    `scope` is 'bus' (name as given) or 'drive' (declared as drives.<name>.<param>).
+    `choices` restricts strings; `min_value`/`max_value` restrict numbers.
+    """
+
+    name: str
+    default: Any
+    description: str
+    scope: str = 'drive'
+    min_value: float | None = None
+    max_value: float | None = None
+    choices: tuple[str, ...] = ()
+    read_only: bool = True
+
+
+@dataclasses.dataclass(frozen=True)
+class Vendor:
+    """What a vendor module gives the node layer: its parameters and two factories."""
+
+    name: str                      # e.g. 'X-PLUS MT'
+    params: tuple[ParamSpec, ...]  # vendor bus and per-drive parameters
+    make_bus: Callable[[Mapping[str, Any]], Bus]
+    make_drive: Callable[[Bus, str, Mapping[str, Any]], Drive]
+    # defaults for the common per-drive parameters that differ by vendor (steps_per_rev ...)
+    drive_defaults: Mapping[str, Any] = dataclasses.field(default_factory=dict)
