@@ -81,7 +81,7 @@ if [ "$(cat "$STAMP_DIR/env" 2>/dev/null)" != "$want" ]; then
         # The wheels' CMake exports name the wheel builder's interpreter paths; point them here.
         py_inc=$("$VENV/bin/python" -c 'import sysconfig; print(sysconfig.get_paths()["include"])')
         np_inc=$("$VENV/bin/python" -c 'import numpy; print(numpy.get_include())')
-        grep -rlZ '/opt/python/cp311-cp311/' "$VENV/share" --include='*.cmake' 2>/dev/null \
+        { grep -rlZ '/opt/python/cp311-cp311/' "$VENV/share" --include='*.cmake' || true; } \
             | xargs -0 -r sed -i \
                 -e "s#/opt/python/cp311-cp311/include/python3.11#$py_inc#g" \
                 -e "s#/opt/python/cp311-cp311/lib/python3.11/site-packages/numpy/_core/include#$np_inc#g"
