@@ -1,0 +1,174 @@
+#!/usr/bin/env python3
+"""Benchmark (not a test): X-PLUS MT node against xplus_mt_sim, measured on the wire.
+
+A sniffing TCP relay sits between node and simulator and timestamps every Modbus request. Prints:
+1. state-poll transactions per second the node achieves (publish_rate_hz set far above what it
+   can do, so the poll loop runs flat out), and the same for a bare pymodbus loop reading the same
+   register block from the same simulator: the ratio is the figure;
+2. ROS-command-to-wire latency: time from publishing position_command to the FC16 write of
+   Target Position (1042) arriving at the relay, p50/p99 over N commands.
+
+Run: source scripts/env.sh && python scripts/bench_xplus_mt_ros.py [--seconds 5] [--commands 200]
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import os
+import statistics
+import struct
+import sys
+import tempfile
+import threading
+import time
+import pathlib
+
+os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+
+from std_msgs.msg import Float64  # noqa: E402
+from std_srvs.srv import SetBool  # noqa: E402
+from stepper_drivers.tools.client import RosClient  # noqa: E402
+from stepper_drivers.tools.processes import CONFIG, Proc, executable, free_port  # noqa: E402
+from stepper_drivers_msgs.msg import DriveStatus  # noqa: E402
+
+STATE_BLOCK = (1001, 21)      # the block the node reads per drive per cycle (1001..1021)
+TARGET_POSITION = 1042
+
+
+class SniffingRelay:
+    """127.0.0.1:listen -> 127.0.0.1:upstream; records (time, function code, address) per request."""
+
+    def __init__(self, upstream_port: int):
+        self.upstream_port = upstream_port
+        self.port = free_port()
+        self.requests: list[tuple[float, int, int]] = []
+        self.loop = asyncio.new_event_loop()
+        self.ready = threading.Event()
+        threading.Thread(target=self._run, daemon=True).start()
+        self.ready.wait(5)
+
+    def _run(self):
+        asyncio.set_event_loop(self.loop)
+        self.loop.run_until_complete(self._serve())
+
+    async def _serve(self):
+        server = await asyncio.start_server(self._client, '127.0.0.1', self.port)
+        self.ready.set()
+        async with server:
+            await server.serve_forever()
+
+    async def _client(self, reader, writer):
+        up_r, up_w = await asyncio.open_connection('127.0.0.1', self.upstream_port)
+
+        async def requests():
+            buf = b''
+            while data := await reader.read(4096):
+                now = time.monotonic()
+                buf += data
+                while len(buf) >= 7:                      # MBAP: tid, pid, length, unit
+                    length = struct.unpack('>H', buf[4:6])[0]
+                    if len(buf) < 6 + length:
+                        break
+                    frame, buf = buf[:6 + length], buf[6 + length:]
+                    fc, addr = frame[7], struct.unpack('>H', frame[8:10])[0]
+                    self.requests.append((now, fc, addr))
+                up_w.write(data)
+            up_w.close()
+
+        async def replies():
+            while data := await up_r.read(4096):
+                writer.write(data)
+            writer.close()
+        await asyncio.gather(requests(), replies(), return_exceptions=True)
+
+
+def bare_pymodbus_tps(port: int, seconds: float) -> float:
+    from pymodbus.client import ModbusTcpClient
+    c = ModbusTcpClient('127.0.0.1', port=port, timeout=1)
+    assert c.connect()
+    n, t_end = 0, time.monotonic() + seconds
+    t0 = time.monotonic()
+    while time.monotonic() < t_end:
+        r = c.read_holding_registers(STATE_BLOCK[0], count=STATE_BLOCK[1], device_id=1)
+        assert not r.isError(), r
+        n += 1
+    c.close()
+    return n / (time.monotonic() - t0)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument('--seconds', type=float, default=5.0)
+    ap.add_argument('--commands', type=int, default=200)
+    args = ap.parse_args()
+    log_dir = pathlib.Path(tempfile.mkdtemp(prefix='bench_xplus_'))
+    sim_port = free_port()
+    procs = []
+    ros = None
+    try:
+        sim = Proc([executable('stepper_sim', 'xplus_mt_sim'), '--ros-args', '--params-file',
+                    str(CONFIG / 'xplus_mt_sim.yaml'), '-p', f'port:={sim_port}'], log_dir, 'sim')
+        procs.append(sim)
+        sim.wait_line('ready', 30)
+        bare = bare_pymodbus_tps(sim_port, args.seconds)
+        relay = SniffingRelay(sim_port)
+        node = Proc([executable('stepper_drivers', 'xplus_mt_node'), '--ros-args', '--params-file',
+                     str(CONFIG / 'xplus_mt.yaml'), '-p', f'port:={relay.port}',
+                     '-p', 'publish_rate_hz:=1000.0', '-p', 'drives:=[axis1]'], log_dir, 'node')
+        procs.append(node)
+        ros = RosClient('bench')
+        status = '/xplus_mt_node/axis1/status'
+        ros.subscribe(DriveStatus, status)
+        ros.wait_msg(status, lambda m: m.connected, 30)
+        time.sleep(1.0)  # warm-up: let discovery and the first cycles settle before counting
+        t0 = time.monotonic()
+        n0 = len(relay.requests)
+        time.sleep(args.seconds)  # measurement window
+        polls = [r for r in relay.requests[n0:] if r[1] == 3 and r[2] == STATE_BLOCK[0]]
+        node_tps = len(polls) / (time.monotonic() - t0)
+
+        resp = ros.call(SetBool, '/xplus_mt_node/axis1/enable', SetBool.Request(data=True))
+        assert resp.success, resp.message
+        latencies = []
+        topic = '/xplus_mt_node/axis1/position_command'
+        for i in range(args.commands):
+            target = 0.5 if i % 2 == 0 else -0.5
+            n_before = len(relay.requests)
+            t_pub = time.monotonic()
+            ros.publish(Float64, topic, Float64(data=target))
+            deadline = t_pub + 2.0
+            seen = None
+            while seen is None and time.monotonic() < deadline:
+                for t, fc, addr in relay.requests[n_before:]:
+                    if fc == 16 and addr == TARGET_POSITION:
+                        seen = t
+                        break
+                else:
+                    time.sleep(0.0002)  # polling the relay's list; 0.2 ms resolution
+            if seen is not None:
+                latencies.append((seen - t_pub) * 1000)
+            time.sleep(0.02)  # command pacing: 50 commands/s at most
+        ros.call(SetBool, '/xplus_mt_node/axis1/enable', SetBool.Request(data=False))
+    finally:
+        if ros:
+            ros.close()
+        for p in reversed(procs):
+            p.stop()
+
+    lat = sorted(latencies)
+    p50 = statistics.median(lat)
+    p99 = lat[min(len(lat) - 1, int(0.99 * len(lat)))]
+    print(f'X-PLUS MT benchmark ({os.cpu_count()} cores, sim and node on 127.0.0.1)')
+    print(f'  state block {STATE_BLOCK[1]} registers from {STATE_BLOCK[0]}, one FC03 per drive per cycle')
+    print(f'  bare pymodbus sync loop:        {bare:8.0f} transactions/s')
+    print(f'  node poll loop (1 drive):       {node_tps:8.0f} transactions/s '
+          f'(publish_rate_hz 1000 requested)')
+    print(f'  ratio node / bare:              {node_tps / bare:8.1%}')
+    print(f'  command -> wire latency:        p50 {p50:.2f} ms, p99 {p99:.2f} ms '
+          f'over {len(lat)} of {args.commands} position commands')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,239 @@
+"""Parameter declaration and validation for every vendor node.
+
+Each parameter is declared with a description and a range (rclpy checks ranges at declaration, params
+file included). Anything wrong ends start-up with one `ParameterError` line naming the parameter, the
+value and what is allowed. The result is plain dataclasses; the node keeps reading the runtime-changeable
+values (profile, limits, rates) from the node so `ros2 param set` takes effect at the next command.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any, Iterable
+
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
+from rclpy.exceptions import (InvalidParameterTypeException, InvalidParameterValueException,
+                              ParameterUninitializedException)
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+
+from .drive import ParamSpec, Vendor
+from .units import UnitConversion
+
+INF = float('inf')
+
+
+class ParameterError(Exception):
+    """A bad parameter value; str() is the one line shown to the user."""
+
+
+@dataclasses.dataclass(frozen=True)
+class P:
+    """A parameter of the common contract (ros_interface.md)."""
+
+    name: str
+    default: Any
+    description: str
+    min_value: float | None = None
+    max_value: float | None = None
+    choices: tuple[str, ...] = ()
+    read_only: bool = True
+
+
+# Bus-level parameters every node has; the vendor adds its transport settings.
+BUS_PARAMS = (
+    P('timeout_s', 0.5, 'answer timeout of one transaction on the bus [s]', 0.001, 60.0),
+    P('publish_rate_hz', 50.0, 'rate of polling the drives and publishing joint_states/status [Hz]',
+      0.1, 1000.0, read_only=False),
+    P('command_timeout_s', 0.5, 'velocity watchdog: a drive running from velocity_command stops when '
+      'no new command arrives within this time [s]', 0.01, 3600.0, read_only=False),
+    P('reconnect_period_s', 1.0, 'first retry delay after the link drops; doubles up to 8x [s]',
+      0.05, 600.0),
+    P('diagnostics_rate_hz', 1.0, 'rate of /diagnostics [Hz]', 0.1, 50.0),
+)
+
+# Per-drive parameters every node has, declared as drives.<name>.<param>.
+DRIVE_PARAMS = (
+    P('joint_name', '', 'joint name in joint_states and joint_command (default: the drive name)'),
+    P('steps_per_rev', 200.0, 'motor steps (micro-steps) per motor revolution', 1.0, 1e9),
+    P('gear_ratio', 1.0, 'motor revolutions per output revolution', 1e-9, 1e9),
+    P('unit', 'rad', "joint unit: 'rad' (rotary) or 'm' (linear, needs lead_m)", choices=('rad', 'm')),
+    P('lead_m', 0.0, 'linear travel per output revolution for unit m [m]', 0.0, 1e3),
+    P('min_position', -1e9, 'lowest position a command may ask for [rad or m]', -INF, INF,
+      read_only=False),
+    P('max_position', 1e9, 'highest position a command may ask for [rad or m]', -INF, INF,
+      read_only=False),
+    P('max_velocity', 10.0, 'largest velocity a command may ask for [rad/s or m/s]', 0.0, 1e9,
+      read_only=False),
+    P('max_acceleration', 100.0, 'largest acceleration/deceleration of a profile [rad/s^2 or m/s^2]',
+      0.0, 1e12, read_only=False),
+    P('profile_velocity', 1.0, 'velocity of position moves [rad/s or m/s]', 0.0, 1e9,
+      read_only=False),
+    P('profile_acceleration', 10.0, 'acceleration of moves and velocity runs [rad/s^2 or m/s^2]',
+      0.0, 1e12, read_only=False),
+    P('profile_deceleration', 10.0, 'deceleration of moves, velocity runs and stops '
+      '[rad/s^2 or m/s^2]', 0.0, 1e12, read_only=False),
+    P('homing.method', 35, "homing method number in the drive's own numbering", -128, 127,
+      read_only=False),
+    P('homing.offset', 0.0, 'position of the home point after homing [rad or m]', -INF, INF,
+      read_only=False),
+    P('homing.speed_search', 0.5, 'speed while searching the switch [rad/s or m/s]', 0.0, 1e9,
+      read_only=False),
+    P('homing.speed_zero', 0.1, 'speed while searching the zero/index [rad/s or m/s]', 0.0, 1e9,
+      read_only=False),
+    P('homing.acceleration', 10.0, 'homing acceleration [rad/s^2 or m/s^2]', 0.0, 1e12,
+      read_only=False),
+    P('homing.timeout_s', 60.0, 'the home service fails (and stops the drive) after this time [s]',
+      0.1, 3600.0, read_only=False),
+    P('auto_enable', False, 'enable the drive at start-up (target = actual position first)'),
+    P('disable_on_shutdown', True, 'disable the power stage when the node ends'),
+    P('allow_raw_write', False, 'allow write_register (raw writes can change anything)'),
+)
+
+RUNTIME_DRIVE_PARAMS = frozenset(p.name for p in DRIVE_PARAMS if not p.read_only)
+
+
+def _descriptor(p: P | ParamSpec) -> ParameterDescriptor:
+    d = ParameterDescriptor(description=p.description, read_only=p.read_only)
+    if p.choices:
+        d.additional_constraints = 'one of: ' + ', '.join(p.choices)
+    if isinstance(p.default, bool):
+        return d
+    if isinstance(p.default, int) and (p.min_value is not None or p.max_value is not None):
+        d.integer_range = [IntegerRange(
+            from_value=int(p.min_value if p.min_value is not None else -2**63),
+            to_value=int(p.max_value if p.max_value is not None else 2**63 - 1), step=0)]
+    elif isinstance(p.default, float) and (p.min_value is not None or p.max_value is not None):
+        d.floating_point_range = [FloatingPointRange(
+            from_value=float(p.min_value if p.min_value is not None else -INF),
+            to_value=float(p.max_value if p.max_value is not None else INF), step=0.0)]
+    return d
+
+
+def _allowed(p: P | ParamSpec) -> str:
+    if p.choices:
+        return 'one of ' + ', '.join(p.choices)
+    if isinstance(p.default, bool):
+        return 'true or false'
+    kind = 'an integer' if isinstance(p.default, int) else 'a number'
+    lo = '' if p.min_value is None else f' from {p.min_value:g}'
+    hi = '' if p.max_value is None else f' to {p.max_value:g}'
+    return kind + lo + hi
+
+
+_TYPE_NAMES = {ParameterType.PARAMETER_BOOL: 'a boolean', ParameterType.PARAMETER_INTEGER: 'an integer',
+               ParameterType.PARAMETER_DOUBLE: 'a floating point number',
+               ParameterType.PARAMETER_STRING: 'a string',
+               ParameterType.PARAMETER_STRING_ARRAY: 'a list of strings'}
+
+
+def declare(node: Node, full_name: str, p: P | ParamSpec, default: Any = None) -> Any:
+    """Declare one parameter; return its value or raise ParameterError (one line)."""
+    default = p.default if default is None else default
+    if isinstance(p.default, float) and isinstance(default, int):
+        default = float(default)    # a vendor default written as 12800 for a float parameter
+    override = node._parameter_overrides.get(full_name)  # rclpy has no public accessor
+    if override is not None and isinstance(default, float) \
+            and override.type_ == override.Type.INTEGER:
+        # YAML '10' for a float parameter: accept it as 10.0 instead of failing on the type.
+        node._parameter_overrides[full_name] = type(override)(
+            full_name, override.Type.DOUBLE, float(override.value))
+    try:
+        value = node.declare_parameter(full_name, default, _descriptor(p)).value
+    except InvalidParameterValueException:
+        got = node._parameter_overrides[full_name].value
+        raise ParameterError(
+            f'parameter {full_name}: {got!r} is out of range (allowed: {_allowed(p)})') from None
+    except InvalidParameterTypeException as e:
+        got = node._parameter_overrides[full_name]
+        want = _TYPE_NAMES.get(Parameter.Type.from_parameter_value(default).value, 'valid')
+        raise ParameterError(f'parameter {full_name}: {got.value!r} is not {want} '
+                             f'(allowed: {_allowed(p)})') from None
+    except ParameterUninitializedException:
+        raise ParameterError(f'parameter {full_name} must be set') from None
+    if p.choices and value not in p.choices:
+        raise ParameterError(f'parameter {full_name}: {value!r} is not allowed '
+                             f'(allowed: {_allowed(p)})')
+    if isinstance(value, float) and math.isnan(value):
+        raise ParameterError(f'parameter {full_name}: NaN is not allowed ({_allowed(p)})')
+    return value
+
+
+@dataclasses.dataclass
+class DriveConfig:
+    name: str
+    joint_name: str
+    conversion: UnitConversion
+    params: dict[str, Any]   # every parameter of this drive, common and vendor, without prefix
+
+
+@dataclasses.dataclass
+class BusConfig:
+    params: dict[str, Any]   # common and vendor bus parameters
+    drives: list[DriveConfig]
+
+
+def check_drive(prefix: str, values: dict[str, Any]) -> None:
+    """Cross-field rules that ranges cannot express; raise ParameterError."""
+    if values['min_position'] >= values['max_position']:
+        raise ParameterError(
+            f"parameter {prefix}min_position: {values['min_position']} must be below "
+            f"{prefix}max_position ({values['max_position']})")
+    for name in ('profile_velocity', 'homing.speed_search', 'homing.speed_zero'):
+        if values[name] > values['max_velocity']:
+            raise ParameterError(
+                f'parameter {prefix}{name}: {values[name]} exceeds {prefix}max_velocity '
+                f"({values['max_velocity']})")
+    for name in ('profile_acceleration', 'profile_deceleration', 'homing.acceleration'):
+        if values[name] > values['max_acceleration']:
+            raise ParameterError(
+                f'parameter {prefix}{name}: {values[name]} exceeds {prefix}max_acceleration '
+                f"({values['max_acceleration']})")
+
+
+def declare_all(node: Node, vendor: Vendor) -> BusConfig:
+    """Declare the common and the vendor parameters; raise ParameterError on the first bad one."""
+    bus_specs = [s for s in vendor.params if s.scope == 'bus']
+    drive_specs = [s for s in vendor.params if s.scope == 'drive']
+    bus = {p.name: declare(node, p.name, p) for p in (*BUS_PARAMS, *bus_specs)}
+    drive_names = declare(node, 'drives', P('drives', [''], 'names of the drives on this bus'))
+    drive_names = [n for n in drive_names if n]
+    if not drive_names:
+        raise ParameterError('parameter drives: no drive named (allowed: a list of one or more '
+                             'drive names, each with its drives.<name>.* parameters)')
+    if len(set(drive_names)) != len(drive_names):
+        raise ParameterError(f'parameter drives: {drive_names} names a drive twice')
+    for n in drive_names:
+        if not n.replace('_', '').isalnum() or not n[0].isalpha():
+            raise ParameterError(f'parameter drives: {n!r} is not a valid name (allowed: letters, '
+                                 'digits and _, starting with a letter)')
+    drives = []
+    for name in drive_names:
+        prefix = f'drives.{name}.'
+        values = {}
+        for p in (*DRIVE_PARAMS, *drive_specs):
+            default = vendor.drive_defaults.get(p.name)
+            values[p.name] = declare(node, prefix + p.name, p, default)
+        check_drive(prefix, values)
+        try:
+            conv = UnitConversion(values['steps_per_rev'], values['gear_ratio'], values['unit'],
+                                  values['lead_m'])
+        except ValueError as e:
+            raise ParameterError(f'parameter {prefix}{e}') from None
+        drives.append(DriveConfig(name, values['joint_name'] or name, conv, values))
+    joints = [d.joint_name for d in drives]
+    if len(set(joints)) != len(joints):
+        raise ParameterError(f'parameter drives.*.joint_name: {joints} names a joint twice')
+    _refuse_unknown(node, drive_names)
+    return BusConfig(bus, drives)
+
+
+def _refuse_unknown(node: Node, drive_names: Iterable[str]) -> None:
+    """A misspelt parameter in the params file would be ignored silently by rclpy: refuse it."""
+    declared = set(node._parameters)
+    for name in node._parameter_overrides:
+        if name in declared or name in ('use_sim_time', 'start_type_description_service'):
+            continue
+        raise ParameterError(f'parameter {name}: unknown parameter (drives are {list(drive_names)};'
+                             ' see the interface reference for the allowed names)')

@@ -1,0 +1,73 @@
+"""A small rclpy client with a background executor: bounded waits for messages and services."""
+
+from __future__ import annotations
+
+import threading
+from typing import Any, Callable
+
+from .processes import wait_for
+
+
+class RosClient:
+    """One rclpy node with a background executor, for tests."""
+
+    def __init__(self, name: str = 'test_client'):
+        import rclpy
+        from rclpy.executors import MultiThreadedExecutor
+        self.rclpy = rclpy
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context)
+        self.node = rclpy.create_node(name, context=self.context)
+        self.executor = MultiThreadedExecutor(num_threads=2, context=self.context)
+        self.executor.add_node(self.node)
+        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
+        self.thread.start()
+        self.latest: dict[str, Any] = {}
+        self.history: dict[str, list] = {}
+        self.lock = threading.Lock()
+        self._pubs: dict[str, Any] = {}
+
+    def subscribe(self, msg_type, topic: str, keep: bool = False) -> None:
+        """Remember the latest message on topic (and all of them if keep)."""
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+        def cb(msg, topic=topic):
+            with self.lock:
+                self.latest[topic] = msg
+                if keep:
+                    self.history.setdefault(topic, []).append(msg)
+        qos = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
+        self.node.create_subscription(msg_type, topic, cb, qos)
+
+    def wait_msg(self, topic: str, cond: Callable[[Any], bool] = lambda m: True,
+                 timeout_s: float = 10.0, what: str = '') -> Any:
+        def check():
+            with self.lock:
+                m = self.latest.get(topic)
+            return m if m is not None and cond(m) else None
+        return wait_for(check, timeout_s, what or f'a message on {topic}')
+
+    def call(self, srv_type, name: str, request=None, timeout_s: float = 10.0):
+        client = self.node.create_client(srv_type, name)
+        try:
+            assert client.wait_for_service(timeout_sec=timeout_s), f'service {name} not available'
+            future = client.call_async(request if request is not None else srv_type.Request())
+            done = threading.Event()
+            future.add_done_callback(lambda _f: done.set())
+            assert done.wait(timeout_s), f'service {name} did not answer within {timeout_s} s'
+            return future.result()
+        finally:
+            self.node.destroy_client(client)
+
+    def publish(self, msg_type, topic: str, msg) -> None:
+        if topic not in self._pubs:
+            self._pubs[topic] = self.node.create_publisher(msg_type, topic, 10)
+            wait_for(lambda: self._pubs[topic].get_subscription_count() > 0, 10.0,
+                     f'a subscriber on {topic}')
+        self._pubs[topic].publish(msg)
+
+    def close(self) -> None:
+        self.executor.shutdown(timeout_sec=2.0)
+        self.node.destroy_node()
+        self.rclpy.try_shutdown(context=self.context)
+        self.thread.join(timeout=5)

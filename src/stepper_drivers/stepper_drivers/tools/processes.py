@@ -1,0 +1,107 @@
+"""Start project executables as real processes (demo, benchmarks, tests).
+
+`Proc`: a process in its own process group, output captured to a file, waited on by evidence (a line
+it prints), stopped by its own PID with SIGINT (SIGKILL only if it does not end). No rclpy here.
+"""
+
+from __future__ import annotations
+
+import os
+import pathlib
+import signal
+import socket
+import subprocess
+import threading
+import time
+from typing import Any, Callable
+
+
+def workspace_root() -> pathlib.Path:
+    """The colcon workspace: STEPPER_WS, else the folder above install/ that holds this file."""
+    if os.environ.get('STEPPER_WS'):
+        return pathlib.Path(os.environ['STEPPER_WS'])
+    for parent in pathlib.Path(__file__).resolve().parents:
+        if (parent / 'install').is_dir() and (parent / 'src').is_dir():
+            return parent
+    return pathlib.Path.cwd()
+
+
+ROOT = workspace_root()
+INSTALL = ROOT / 'install'
+CONFIG = ROOT / 'config'
+
+
+def executable(pkg: str, exe: str) -> str:
+    path = INSTALL / pkg / 'lib' / pkg / exe
+    if not path.exists():
+        raise FileNotFoundError(f'{path} missing: run scripts/bootstrap.sh')
+    return str(path)
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(('127.0.0.1', 0))
+        return s.getsockname()[1]
+
+
+def wait_for(cond: Callable[[], Any], timeout_s: float, what: str = 'condition',
+             period_s: float = 0.01) -> Any:
+    """Poll cond until it returns something truthy; fail naming `what` after timeout_s."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        value = cond()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f'timed out after {timeout_s} s waiting for {what}')
+        time.sleep(period_s)
+
+
+class Proc:
+    """A project executable run as its own process group, output in a log file."""
+
+    def __init__(self, args: list[str], log_dir: pathlib.Path, name: str,
+                 env: dict[str, str] | None = None):
+        self.name = name
+        self.log_path = log_dir / f'{name}.log'
+        self.log_file = open(self.log_path, 'wb')
+        self.proc = subprocess.Popen(args, stdout=self.log_file, stderr=subprocess.STDOUT,
+                                     start_new_session=True, env={**os.environ, **(env or {})})
+
+    @property
+    def pid(self) -> int:
+        return self.proc.pid
+
+    def output(self) -> str:
+        return self.log_path.read_text(errors='replace')
+
+    def wait_line(self, text: str, timeout_s: float = 20.0) -> None:
+        def seen():
+            if self.proc.poll() is not None:
+                raise AssertionError(f'{self.name} exited with {self.proc.returncode} before '
+                                     f'printing {text!r}:\n{self.output()[-3000:]}')
+            return text in self.output()
+        wait_for(seen, timeout_s, f'{self.name} to print {text!r}', 0.02)
+
+    def stop(self, sig: int = signal.SIGINT, timeout_s: float = 15.0) -> int:
+        """Signal our own process group; returns the exit code."""
+        if self.proc.poll() is None:
+            try:
+                os.killpg(self.proc.pid, sig)
+            except ProcessLookupError:
+                pass
+            try:
+                self.proc.wait(timeout=timeout_s)
+            except subprocess.TimeoutExpired:
+                os.killpg(self.proc.pid, signal.SIGKILL)
+                self.proc.wait(timeout=5)
+                raise AssertionError(f'{self.name} did not end within {timeout_s} s of '
+                                     f'signal {sig}:\n{self.output()[-3000:]}')
+        self.log_file.close()
+        return self.proc.returncode
+
+    def kill(self) -> None:
+        if self.proc.poll() is None:
+            os.killpg(self.proc.pid, signal.SIGKILL)
+            self.proc.wait(timeout=5)
+        self.log_file.close()

@@ -1,0 +1,159 @@
+"""ModbusTcpBus against a real pymodbus 3.16.1 TCP server on 127.0.0.1 (no mocks)."""
+
+import asyncio
+import socket
+import threading
+import time
+
+import pytest
+from pymodbus import FramerType
+from pymodbus.constants import ExcCodes
+from pymodbus.server import ModbusTcpServer
+from pymodbus.simulator import DataType, SimData, SimDevice
+
+from stepper_drivers.drive import DriveError, LinkError
+from stepper_drivers.protocol.modbus_tcp import ModbusTcpBus, make_bus
+
+READ_ONLY = 1001
+
+
+def _free_port():
+    with socket.socket() as s:
+        s.bind(('127.0.0.1', 0))
+        return s.getsockname()[1]
+
+
+class Server:
+    """A 100-register device (address 1000..1099) in a thread; 1001 is read-only."""
+
+    def __init__(self):
+        self.port = _free_port()
+        self.writes = []
+        self.loop = asyncio.new_event_loop()
+        self.ready = threading.Event()
+        self.thread = threading.Thread(target=self._run, daemon=True)
+
+    async def action(self, fc, block_start, start, count, regs, set_values):
+        if set_values is not None:
+            self.writes.append((fc, start, list(set_values)))
+            if start <= READ_ONLY < start + count:
+                return ExcCodes.ILLEGAL_ADDRESS
+        return None
+
+    async def _main(self):
+        device = SimDevice(id=1, simdata=[SimData(address=1000, count=100, values=0,
+                                                  datatype=DataType.REGISTERS)],
+                           action=self.action)
+        self.server = ModbusTcpServer(device, address=('127.0.0.1', self.port),
+                                      framer=FramerType.SOCKET)
+        self.ready.set()
+        await self.server.serve_forever()
+
+    def _run(self):
+        asyncio.set_event_loop(self.loop)
+        self.loop.run_until_complete(self._main())
+
+    def start(self):
+        self.thread.start()
+        assert self.ready.wait(5)
+        deadline = time.monotonic() + 5
+        while True:            # listening once a TCP connect succeeds
+            try:
+                socket.create_connection(('127.0.0.1', self.port), timeout=1).close()
+                return self
+            except OSError:
+                assert time.monotonic() < deadline, 'server did not listen'
+                time.sleep(0.01)
+
+    def stop(self):
+        asyncio.run_coroutine_threadsafe(self.server.shutdown(), self.loop).result(5)
+        self.thread.join(5)
+        self.loop.close()
+
+
+@pytest.fixture
+def server():
+    srv = Server().start()
+    yield srv
+    srv.stop()
+
+
+@pytest.fixture
+def bus(server):
+    b = ModbusTcpBus('127.0.0.1', server.port, timeout_s=0.5)
+    b.open()
+    yield b
+    b.close()
+
+
+def test_write_and_read_back(bus, server):
+    bus.write_registers(1, 1042, [0xA980, 0x0003])            # FC16
+    bus.write_registers(1, 1040, [0x000F], single=True)       # FC06
+    assert bus.read_registers(1, 1040, 4) == [0x000F, 0, 0xA980, 0x0003]
+    assert [w[0] for w in server.writes] == [16, 6]
+    assert bus.counters() == {'transactions': 3, 'errors': 0, 'exceptions': 0, 'timeouts': 0}
+    assert bus.is_open and bus.description == f'modbus tcp 127.0.0.1:{server.port}'
+
+
+def test_exception_reply_names_fc_address_and_code(bus):
+    with pytest.raises(DriveError) as err:
+        bus.write_registers(1, 1000, [1, 2, 3])
+    assert not isinstance(err.value, LinkError)
+    assert 'FC16 write at 1000: exception 0x02 ILLEGAL DATA ADDRESS' in str(err.value)
+    with pytest.raises(DriveError, match='FC06 write at 1001: exception 0x02 ILLEGAL DATA'):
+        bus.write_registers(1, 1001, [5], single=True)
+    with pytest.raises(DriveError, match=r'FC03 read of 5 at 1098: exception 0x02'):
+        bus.read_registers(1, 1098, 5)                         # past the end of the map
+    assert bus.counters()['exceptions'] == 3
+    assert bus.read_registers(1, 1002, 1) == [0]               # the link is still fine
+
+
+def test_counts_checked_before_sending(bus):
+    with pytest.raises(DriveError, match='count 126 outside 1..125'):
+        bus.read_registers(1, 1000, 126)
+    assert bus.transactions == 0
+
+
+def test_threads_share_one_bus(bus):
+    errors = []
+
+    def worker(k):
+        try:
+            for i in range(50):
+                bus.write_registers(1, 1010 + k, [i])
+                assert bus.read_registers(1, 1010 + k, 1) == [i]
+        except Exception as exc:    # noqa: BLE001 - collected and asserted below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=worker, args=(k,)) for k in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(10)
+    assert errors == []
+    assert bus.transactions == 400 and bus.errors == 0
+
+
+def test_connection_refused_names_host_port_and_timeout():
+    port = _free_port()
+    b = make_bus({'host': '127.0.0.1', 'port': port, 'timeout_s': 0.2})
+    with pytest.raises(LinkError, match=rf'127.0.0.1:{port} .*timeout 0.2 s'):
+        b.open()
+    assert not b.is_open
+    with pytest.raises(LinkError, match='not connected'):
+        b.read_registers(1, 1001, 1)
+
+
+def test_silent_server_times_out_then_reopens():
+    with socket.socket() as silent:
+        silent.bind(('127.0.0.1', 0))
+        silent.listen()
+        port = silent.getsockname()[1]
+        b = ModbusTcpBus('127.0.0.1', port, timeout_s=0.1)
+        b.open()
+        with pytest.raises(LinkError, match=rf'127.0.0.1:{port} unit 1: FC03 read of 1 at 1001: '
+                                            r'no answer within 0.1 s'):
+            b.read_registers(1, 1001, 1)
+        assert b.counters()['timeouts'] == 1 and b.errors == 1
+        b.close()
+        assert not b.is_open

@@ -1,0 +1,56 @@
+"""Workspace-level fixtures: loopback-only DDS, a private ROS domain, processes and a ROS client."""
+
+import os
+import socket
+
+import pytest
+
+# Fast DDS discovery must not leave the machine (it multicasts on every interface otherwise).
+os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+
+_domain_lock = None
+
+
+def _reserve_domain() -> None:
+    """A private ROS_DOMAIN_ID per test run, reserved by binding a port (as domain_coordinator)."""
+    global _domain_lock
+    if os.environ.get('ROS_DOMAIN_ID'):
+        return
+    for domain in range(60, 101):
+        s = socket.socket()
+        try:
+            s.bind(('127.0.0.1', 23000 + domain))
+        except OSError:
+            s.close()
+            continue
+        _domain_lock = s
+        os.environ['ROS_DOMAIN_ID'] = str(domain)
+        return
+
+
+_reserve_domain()
+
+
+@pytest.fixture
+def procs(tmp_path):
+    """Start processes with procs.start(name, args); all are stopped by PID at the end."""
+    from rosharness import Proc
+
+    class Procs(list):
+        def start(self, name, args, env=None):
+            p = Proc(args, tmp_path, name, env)
+            self.append(p)
+            return p
+
+    started = Procs()
+    yield started
+    for p in reversed(started):
+        p.kill()
+
+
+@pytest.fixture
+def ros():
+    from rosharness import RosClient
+    client = RosClient()
+    yield client
+    client.close()

@@ -1,0 +1,245 @@
+"""X-PLUS MT end to end: xplus_mt_sim and xplus_mt_node as separate processes, driven through ROS.
+
+Every check goes through the node's topics and services (the user's interface); the simulator's
+true position topic and fault-injection service play the part of the real world.
+"""
+
+import math
+import signal
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+import pytest
+from rosharness import CONFIG, executable, free_port, wait_for
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64
+from std_srvs.srv import SetBool, Trigger
+from stepper_drivers_msgs.msg import DriveStatus
+from stepper_drivers_msgs.srv import InjectFault, ReadRegister, WriteRegister
+
+NODE = '/xplus_mt_node'
+SIM = '/xplus_mt_sim'
+STEPS_PER_RAD = 12800 / (2 * math.pi)
+
+
+class Bench:
+    """A simulator and a node on a free port, plus helpers to reach them through ROS."""
+
+    def __init__(self, procs, ros, tmp_path, node_args=()):
+        self.procs, self.ros, self.tmp = procs, ros, tmp_path
+        self.port = free_port()
+        self.storage = tmp_path / 'eeprom'
+        self.storage.mkdir()
+        self.start_sim()
+        self.node = procs.start('node', [
+            executable('stepper_drivers', 'xplus_mt_node'), '--ros-args',
+            '--params-file', str(CONFIG / 'xplus_mt.yaml'), '-p', f'port:={self.port}',
+            '-p', 'reconnect_period_s:=0.2', *node_args])
+        ros.subscribe(JointState, '/joint_states', keep=True)
+        ros.subscribe(DiagnosticArray, '/diagnostics')
+        for d in ('axis1', 'axis2'):
+            ros.subscribe(DriveStatus, f'{NODE}/{d}/status')
+            ros.subscribe(Float64, f'{SIM}/{d}/true_position_steps')
+            self.status(d, lambda m: m.connected, what=f'{d} connected')
+
+    def start_sim(self):
+        for d in ('axis1', 'axis2'):    # forget what a previous simulator published
+            self.ros.latest.pop(f'{SIM}/{d}/true_position_steps', None)
+        self.sim = self.procs.start('sim', [
+            executable('stepper_sim', 'xplus_mt_sim'), '--ros-args',
+            '--params-file', str(CONFIG / 'xplus_mt_sim.yaml'), '-p', f'port:={self.port}',
+            '-p', f'storage_dir:={self.storage}'])
+        self.sim.wait_line('ready', 30.0)
+
+    def status(self, drive, cond=lambda m: True, timeout_s=10.0, what=''):
+        return self.ros.wait_msg(f'{NODE}/{drive}/status', cond, timeout_s,
+                                 what or f'{drive} status')
+
+    def true_steps(self, drive):
+        return self.ros.wait_msg(f'{SIM}/{drive}/true_position_steps').data
+
+    def call(self, drive, name, request=None, srv=Trigger, timeout_s=30.0):
+        return self.ros.call(srv, f'{NODE}/{drive}/{name}', request, timeout_s)
+
+    def enable(self, drive, on=True):
+        r = self.call(drive, 'enable', SetBool.Request(data=on), SetBool)
+        assert r.success, r.message
+        return r
+
+    def inject(self, drive, kind, code=0, value=0.0):
+        r = self.ros.call(InjectFault, SIM + '/inject_fault',
+                          InjectFault.Request(drive=drive, kind=kind, code=code, value=value))
+        assert r.success, r.message
+
+    def command(self, drive, topic, value):
+        self.ros.publish(Float64, f'{NODE}/{drive}/{topic}', Float64(data=value))
+
+
+@pytest.fixture
+def bench(procs, ros, tmp_path):
+    return Bench(procs, ros, tmp_path)
+
+
+def test_start_up_is_safe_and_enable_does_not_move(bench):
+    st = bench.status('axis1', lambda m: m.state == 'SWITCH ON DISABLED', what='SOD at start')
+    assert not st.enabled and not st.fault
+    before = bench.true_steps('axis1')
+    r = bench.enable('axis1')
+    assert 'OPERATION ENABLED' in r.message
+    st = bench.status('axis1', lambda m: m.enabled)
+    assert st.state == 'OPERATION ENABLED'
+    assert abs(bench.true_steps('axis1') - before) < 1 and not st.moving
+    # joint_states: stamped, named after the joints, in rad
+    js = bench.ros.wait_msg('/joint_states')
+    assert list(js.name) == ['joint1', 'joint2']
+    assert js.header.stamp.sec > 0
+
+
+def test_move_to_target_within_tolerance(bench):
+    bench.enable('axis1')
+    bench.command('axis1', 'position_command', 3.0)
+    st = bench.status('axis1', lambda m: not m.moving and abs(m.position - 3.0) < 1e-3,
+                      what='axis1 at 3.0 rad')
+    assert st.position_steps == round(3.0 * STEPS_PER_RAD)
+    assert abs(bench.true_steps('axis1') - 3.0 * STEPS_PER_RAD) <= 1
+    js = bench.ros.wait_msg('/joint_states', lambda m: abs(m.position[0] - 3.0) < 1e-3)
+    assert js.position[1] == pytest.approx(0.0, abs=1e-6)     # axis2 untouched
+
+
+def test_velocity_stops_by_watchdog(bench):
+    bench.enable('axis1')
+    bench.command('axis1', 'velocity_command', 5.0)
+    bench.status('axis1', lambda m: m.moving and m.velocity > 4.0, what='axis1 running')
+    st = bench.status('axis1', lambda m: not m.moving, timeout_s=5.0, what='watchdog stop')
+    assert st.enabled and abs(st.velocity) < 1e-6
+    bench.node.wait_line('velocity watchdog', 5.0)
+
+
+def test_home_runs_while_joint_states_keep_flowing(bench):
+    bench.enable('axis1')
+    n_before = len(bench.ros.history['/joint_states'])
+    r = bench.call('axis1', 'home')
+    assert r.success, r.message
+    assert 'homed' in r.message
+    st = bench.status('axis1', lambda m: m.homed)
+    assert st.homing_state == 'ATTAINED' and st.position == pytest.approx(0.0, abs=1e-3)
+    # a homing takes > 0.2 s; at 50 Hz joint_states must not have paused meanwhile
+    assert len(bench.ros.history['/joint_states']) - n_before >= 10
+
+
+def test_fault_shows_code_and_text_and_only_fault_reset_clears_it(bench):
+    bench.enable('axis1')
+    bench.inject('axis1', 'drive_fault', 0x4310)
+    st = bench.status('axis1', lambda m: m.fault, what='fault in status')
+    assert st.state == 'FAULT' and st.fault_code == 0x4310
+    assert 'temperature' in st.fault_text.lower()
+    diag = bench.ros.wait_msg('/diagnostics', lambda a: any(
+        s.name.endswith('axis1') and s.level == DiagnosticStatus.ERROR for s in a.status))
+    assert any('0x4310' in s.message for s in diag.status)
+    # commands are refused, counted and never sent
+    refused = st.commands_refused
+    bench.command('axis1', 'position_command', 1.0)
+    st = bench.status('axis1', lambda m: m.commands_refused > refused)
+    assert 'FAULT' in st.last_refusal and 'fault_reset' in st.last_refusal
+    # the cause is still there: reset fails and says what remains
+    r = bench.call('axis1', 'fault_reset')
+    assert not r.success and '0x4310' in r.message
+    bench.inject('axis1', 'clear_fault')
+    r = bench.call('axis1', 'fault_reset')
+    assert r.success, r.message
+    st = bench.status('axis1', lambda m: not m.fault)
+    assert st.state == 'SWITCH ON DISABLED'
+
+
+def test_commands_refused_nan_out_of_limits_and_not_enabled(bench):
+    bench.command('axis1', 'position_command', 1.0)
+    st = bench.status('axis1', lambda m: m.commands_refused >= 1)
+    assert 'not enabled' in st.last_refusal
+    bench.enable('axis1')
+    bench.command('axis1', 'position_command', math.nan)
+    st = bench.status('axis1', lambda m: 'finite' in m.last_refusal)
+    bench.command('axis1', 'position_command', 1000.0)
+    st = bench.status('axis1', lambda m: 'min_position..max_position' in m.last_refusal)
+    bench.command('axis1', 'velocity_command', -100.0)
+    st = bench.status('axis1', lambda m: 'max_velocity' in m.last_refusal)
+    assert st.commands_refused >= 4 and not st.moving
+    assert abs(bench.true_steps('axis1')) < 1
+
+
+def test_save_params_is_verified_by_the_stored_copy(bench):
+    import json
+    # 1093 Brake Delay Lock is storable (App.1 '**'); change it, save, read the simulated EEPROM
+    reg = ReadRegister.Request(address='1093', data_type='u16')
+    r = bench.call('axis1', 'read_register', reg, ReadRegister)
+    assert r.success, r.message
+    new = r.value + 7
+    r = bench.call('axis1', 'write_register',
+                   WriteRegister.Request(address='1093', data_type='u16', value=new), WriteRegister)
+    assert r.success, r.message
+    assert not list(bench.storage.glob('*unit1*.json'))
+    r = bench.call('axis1', 'save_params')
+    assert r.success, r.message
+    stored = wait_for(lambda: list(bench.storage.glob('*unit1*.json')), 10.0, 'stored copy')
+    data = json.loads(stored[0].read_text())
+    flat = json.dumps(data)
+    assert f'"1093": {new}' in flat, flat[:800]
+
+
+def test_raw_write_refused_unless_allowed(bench):
+    r = bench.call('axis2', 'write_register',
+                   WriteRegister.Request(address='1044', data_type='i32', value=1), WriteRegister)
+    assert not r.success and 'allow_raw_write' in r.message
+    r = bench.call('axis1', 'read_register', ReadRegister.Request(address='1001', data_type='u16'),
+                   ReadRegister)
+    assert r.success and r.value == bench.status('axis1').status_word
+    r = bench.call('axis1', 'read_register', ReadRegister.Request(address='1003', data_type='u16'),
+                   ReadRegister)
+    assert not r.success and '1003' in r.message
+
+
+def test_simulator_restart_reconnects_and_stays_stopped(bench):
+    bench.enable('axis1')
+    bench.command('axis1', 'velocity_command', 3.0)
+    bench.status('axis1', lambda m: m.moving, what='running')
+    bench.sim.kill()
+    st = bench.status('axis1', lambda m: m.state == 'DISCONNECTED', what='DISCONNECTED')
+    assert not st.connected
+    bench.ros.wait_msg('/diagnostics', lambda a: any(
+        s.name.endswith('link') and s.level == DiagnosticStatus.ERROR for s in a.status))
+    bench.start_sim()
+    st = bench.status('axis1', lambda m: m.connected, timeout_s=15.0, what='reconnected')
+    assert st.state == 'SWITCH ON DISABLED' and not st.moving
+    # nothing resumed: the position stays where the (power-cycled) simulator put it
+    before = bench.true_steps('axis1')
+    bench.status('axis1', lambda m: m.link_reconnects >= 1)
+    assert bench.status('axis1').position_steps == pytest.approx(before, abs=1)
+    assert not bench.status('axis1').enabled
+
+
+def test_sigterm_stops_and_disables(bench):
+    bench.enable('axis1')
+    bench.command('axis1', 'velocity_command', 3.0)
+    bench.status('axis1', lambda m: m.moving, what='running')
+    assert bench.node.stop(signal.SIGTERM) == 0
+    # the drive is left stopped and disabled: ask it over Modbus directly
+    from pymodbus.client import ModbusTcpClient
+    c = ModbusTcpClient('127.0.0.1', port=bench.port, timeout=2)
+    assert c.connect()
+    try:
+        sw = c.read_holding_registers(1001, count=1, device_id=1).registers[0]
+        assert sw & 0x004F == 0x0040 or sw & 0x006F == 0x0021, hex(sw)   # SOD or RTSO
+        p1 = bench.true_steps('axis1')
+        wait_for(lambda: bench.true_steps('axis1') == p1, 2.0, 'standstill')
+    finally:
+        c.close()
+
+
+def test_bad_parameter_fails_start_up_with_one_line(procs, tmp_path):
+    text = (CONFIG / 'xplus_mt.yaml').read_text().replace('unit_id: 2', 'unit_id: 300')
+    f = tmp_path / 'bad.yaml'
+    f.write_text(text)
+    p = procs.start('bad', [executable('stepper_drivers', 'xplus_mt_node'), '--ros-args',
+                            '--params-file', str(f)])
+    assert p.proc.wait(timeout=20) == 2
+    out = p.output().strip().splitlines()
+    assert out[-1] == ('xplus_mt_node: parameter drives.axis2.unit_id: 300 is out of range '
+                       '(allowed: an integer from 0 to 255)'), out
