@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 import threading
 import time
+import traceback
 from typing import Any, Callable
 
 from action_msgs.msg import GoalStatus  # noqa: F401  (imported so the action types resolve early)
@@ -169,6 +170,12 @@ class DriveNode(Node):
             except LinkError as e:
                 self._link_lost(str(e))
                 raise
+            except DriveError:
+                raise
+            except Exception as e:  # noqa: BLE001 - a vendor bug must not kill the node
+                self.log.error(f'{h.name}: internal error in {fn.__name__}: {e!r}\n'
+                               + traceback.format_exc())
+                raise DriveError(f'internal error in {fn.__name__}: {e!r}') from e
 
     def _link_lost(self, why: str) -> None:
         with self.bus_lock:
@@ -198,7 +205,9 @@ class DriveNode(Node):
                     h.identity = h.drive.connect()
                     h.state = h.drive.read_state()
                     h.connected = True
-            except DriveError as e:
+            except Exception as e:  # noqa: BLE001 - DriveError, or a vendor/library bug
+                if not isinstance(e, DriveError):
+                    self.log.error(f'connect: {e!r}\n' + traceback.format_exc())
                 try:
                     self.bus.close()
                 except Exception:  # noqa: BLE001
@@ -241,6 +250,10 @@ class DriveNode(Node):
                 except DriveError as e:
                     self._note_error(h, f'read state: {e}')
                     continue
+                except Exception as e:  # noqa: BLE001 - unknown trouble: treat as a link loss
+                    self.log.error(f'{h.name}: read_state: {e!r}\n' + traceback.format_exc())
+                    self._link_lost(f'unexpected error {e!r}')
+                    break
                 if h.velocity_deadline is not None and now > h.velocity_deadline:
                     h.velocity_deadline = None
                     self.log.warning(
@@ -624,16 +637,16 @@ class DriveNode(Node):
                         if h.param('disable_on_shutdown'):
                             self._wait_standstill(h, SHUTDOWN_STOP_TIMEOUT_S)
                             h.drive.disable()
-                    except DriveError as e:
+                    except Exception as e:  # noqa: BLE001 - go on with the other drives
                         print(f'[{self.get_name()}] {h.name}: shutdown: {e}', flush=True)
             for h in self.handles.values():
                 try:
                     h.drive.close()
-                except DriveError:
+                except Exception:  # noqa: BLE001
                     pass
             try:
                 self.bus.close()
-            except DriveError:
+            except Exception:  # noqa: BLE001
                 pass
 
 

@@ -26,6 +26,7 @@ class RosClient:
         self.history: dict[str, list] = {}
         self.lock = threading.Lock()
         self._pubs: dict[str, Any] = {}
+        self._clients: dict[tuple, Any] = {}
 
     def subscribe(self, msg_type, topic: str, keep: bool = False) -> None:
         """Remember the latest message on topic (and all of them if keep)."""
@@ -48,16 +49,20 @@ class RosClient:
         return wait_for(check, timeout_s, what or f'a message on {topic}')
 
     def call(self, srv_type, name: str, request=None, timeout_s: float = 10.0):
-        client = self.node.create_client(srv_type, name)
-        try:
-            assert client.wait_for_service(timeout_sec=timeout_s), f'service {name} not available'
-            future = client.call_async(request if request is not None else srv_type.Request())
-            done = threading.Event()
-            future.add_done_callback(lambda _f: done.set())
-            assert done.wait(timeout_s), f'service {name} did not answer within {timeout_s} s'
-            return future.result()
-        finally:
-            self.node.destroy_client(client)
+        """Call a service and wait for the answer (clients are kept: destroying one while the
+        executor waits on it makes rclpy log 'cannot use Destroyable')."""
+        key = (srv_type, name)
+        client = self._clients.get(key)
+        if client is None:
+            client = self._clients[key] = self.node.create_client(srv_type, name)
+        if not client.wait_for_service(timeout_sec=timeout_s):
+            raise AssertionError(f'service {name} not available within {timeout_s} s')
+        future = client.call_async(request if request is not None else srv_type.Request())
+        done = threading.Event()
+        future.add_done_callback(lambda _f: done.set())
+        if not done.wait(timeout_s):
+            raise AssertionError(f'service {name} did not answer within {timeout_s} s')
+        return future.result()
 
     def publish(self, msg_type, topic: str, msg) -> None:
         if topic not in self._pubs:
