@@ -160,6 +160,8 @@ class Drive(abc.ABC):
     - Anything the drive cannot do raises RefusedError with the reason for the user.
     """
 
+    address: Any = ''   # bus address as the user configured it (unit id, node id, ASCII address)
+
     def __init__(self, bus: Bus, name: str, params: Mapping[str, Any]):
         self.bus = bus
         self.name = name

@@ -9,6 +9,7 @@ but only hold the lock for each bus transaction, so joint_states keep flowing du
 from __future__ import annotations
 
 import math
+import sys
 import threading
 import time
 import traceback
@@ -39,6 +40,9 @@ TARGET_TOLERANCE_STEPS = 2
 # On shutdown, how long a controlled stop may take before the power stage is disabled anyway.
 SHUTDOWN_STOP_TIMEOUT_S = 5.0
 STANDSTILL_POLL_S = 0.02
+# When polling cannot keep up with publish_rate_hz, this pause gives waiting commands the bus lock.
+OVERRUN_YIELD_S = 0.0005
+GIL_SWITCH_INTERVAL_S = 0.0005
 
 
 class CommandRefused(Exception):
@@ -121,8 +125,11 @@ class DriveNode(Node):
         self.status_pubs = {}
         for h in self.handles.values():
             self._make_drive_interfaces(h)
-        self.poll_timer = self.create_timer(1.0 / self.bus_params['publish_rate_hz'], self.poll,
-                                            callback_group=self.poll_group)
+        # The poll loop is a thread of its own, not an executor timer: rclpy's executor costs
+        # more per callback than a Modbus TCP transaction, and commands must not queue behind it.
+        self.poll_period_s = 1.0 / self.bus_params['publish_rate_hz']
+        self.poll_stop = threading.Event()
+        self.poll_thread = threading.Thread(target=self._poll_loop, name='poll', daemon=True)
         self.create_timer(1.0 / self.bus_params['diagnostics_rate_hz'], self.publish_diagnostics,
                           callback_group=self.poll_group)
         self.add_on_set_parameters_callback(self.on_set_parameters)
@@ -227,6 +234,23 @@ class DriveNode(Node):
         return True
 
     # ------------------------------------------------------------------------------ poll loop
+    def start(self) -> None:
+        self.poll_thread.start()
+
+    def _poll_loop(self) -> None:
+        next_t = time.monotonic()
+        while not self.poll_stop.is_set():
+            try:
+                self.poll()
+            except Exception as e:  # noqa: BLE001 - the loop must survive anything
+                self.log.error(f'poll: {e!r}\n' + traceback.format_exc())
+            next_t += self.poll_period_s
+            delay = next_t - time.monotonic()
+            if delay < OVERRUN_YIELD_S:  # overrun: no catch-up burst, and let commands in
+                next_t = time.monotonic()
+                delay = OVERRUN_YIELD_S
+            self.poll_stop.wait(delay)
+
     def poll(self) -> None:
         if self.shutting_down:
             return
@@ -304,7 +328,7 @@ class DriveNode(Node):
         m = DriveStatus()
         m.header.stamp = stamp
         m.drive, m.joint_name, m.vendor = h.name, h.cfg.joint_name, self.vendor.name
-        m.address = str(h.drive.address) if hasattr(h.drive, 'address') else ''
+        m.address = str(h.drive.address)
         m.state = s.state.value
         m.connected = h.connected
         m.enabled, m.moving, m.target_reached, m.homed = s.enabled, s.moving, s.target_reached, s.homed
@@ -335,7 +359,7 @@ class DriveNode(Node):
         for h in self.handles.values():
             s = h.state
             d = DiagnosticStatus(name=f'{self.get_name()}: {h.name}',
-                                 hardware_id=f'{self.vendor.name} {getattr(h.drive, "address", "")}')
+                                 hardware_id=f'{self.vendor.name} {h.drive.address}')
             if not h.connected:
                 d.level, d.message = DiagnosticStatus.ERROR, 'DISCONNECTED'
             elif s.fault:
@@ -621,14 +645,16 @@ class DriveNode(Node):
             if p.name in ('publish_rate_hz', 'command_timeout_s'):
                 self.bus_params[p.name] = p.value
             if p.name == 'publish_rate_hz':
-                self.poll_timer.timer_period_ns = int(1e9 / p.value)
-                self.poll_timer.reset()
+                self.poll_period_s = 1.0 / p.value
             self.log.info(f'parameter {p.name} := {p.value}')
 
     # ------------------------------------------------------------------------------- shutdown
     def shutdown_drives(self) -> None:
         """Stop motion, disable where disable_on_shutdown, close the link. No ROS needed."""
         self.shutting_down = True
+        self.poll_stop.set()
+        if self.poll_thread.is_alive():
+            self.poll_thread.join(timeout=5.0)
         with self.bus_lock:
             if self.connected:
                 for h in self.handles.values():
@@ -664,6 +690,10 @@ def spin_node(node: DriveNode) -> None:
     from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
     executor = MultiThreadedExecutor(num_threads=4)
     executor.add_node(node)
+    # The poll thread waits on the bus and then needs the GIL back from the executor threads:
+    # a short switch interval keeps that hand-over well below a transaction time.
+    sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
+    node.start()
     try:
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):

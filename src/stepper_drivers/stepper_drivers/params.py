@@ -230,10 +230,23 @@ def declare_all(node: Node, vendor: Vendor) -> BusConfig:
 
 
 def _refuse_unknown(node: Node, drive_names: Iterable[str]) -> None:
-    """A misspelt parameter in the params file would be ignored silently by rclpy: refuse it."""
+    """A misspelt parameter in the params file would be ignored silently by rclpy: refuse it.
+
+    Parameters of a drive that is not in `drives` are only warned about: taking a drive out of the
+    list is the normal way to run without it.
+    """
     declared = set(node._parameters)
+    names = list(drive_names)
+    unlisted = set()
     for name in node._parameter_overrides:
         if name in declared or name in ('use_sim_time', 'start_type_description_service'):
             continue
-        raise ParameterError(f'parameter {name}: unknown parameter (drives are {list(drive_names)};'
-                             ' see the interface reference for the allowed names)')
+        parts = name.split('.')
+        if len(parts) > 2 and parts[0] == 'drives' and parts[1] not in names:
+            unlisted.add(parts[1])
+            continue
+        raise ParameterError(f'parameter {name}: unknown parameter (drives are {names};'
+                             ' see docs/interface.md for the allowed names)')
+    for drive in sorted(unlisted):
+        node.get_logger().warning(f'drives.{drive}.* is configured but {drive!r} is not in '
+                                  f'drives {names}: ignored')

@@ -72,7 +72,8 @@ class RosClient:
         self._pubs[topic].publish(msg)
 
     def close(self) -> None:
+        # Stop spinning and wait for the spin thread before destroying what it waits on.
         self.executor.shutdown(timeout_sec=2.0)
+        self.thread.join(timeout=5)
         self.node.destroy_node()
         self.rclpy.try_shutdown(context=self.context)
-        self.thread.join(timeout=5)

@@ -54,6 +54,7 @@ class XplusMtDrive(Drive):
             raise TypeError(f'{name}: X-PLUS MT needs a ModbusTcpBus, got {type(bus).__name__}')
         self.mb: ModbusTcpBus = bus
         self.unit_id = int(params.get('unit_id', 1))
+        self.address = self.unit_id
         self.word_order = str(params.get('word_order', 'little'))
         self.cia = cia402.Cia402Device(self._read_statusword, self._write_controlword,
                                        min_delay_s=CW_SW_DELAY_S, name=name)
