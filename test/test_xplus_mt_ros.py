@@ -245,3 +245,21 @@ def test_bad_parameter_fails_start_up_with_one_line(procs, tmp_path):
     out = p.output().strip().splitlines()
     assert out[-1] == ('xplus_mt_node: parameter drives.axis2.unit_id: 300 is out of range '
                        '(allowed: an integer from 0 to 255)'), out
+
+
+def test_link_cut_during_velocity_run_ends_stopped_not_resumed(bench):
+    bench.enable('axis1')
+    bench.command('axis1', 'velocity_command', 3.0)
+    bench.status('axis1', lambda m: m.moving, what='running')
+    bench.inject('axis1', 'cut')
+    bench.status('axis1', lambda m: m.state == 'DISCONNECTED', what='DISCONNECTED')
+    bench.inject('axis1', 'link_ok')
+    # the drive kept running on its own while the link was down; once back, the node's watchdog
+    # (the last velocity_command is long past command_timeout_s) stops it, and nothing restarts it
+    st = bench.status('axis1', lambda m: m.connected and not m.moving, timeout_s=15.0,
+                      what='reconnected and stopped')
+    assert st.state == 'OPERATION ENABLED' and abs(st.velocity) < 1e-6
+    bench.node.wait_line('velocity watchdog', 5.0)
+    p1 = bench.true_steps('axis1')
+    wait_for(lambda: abs(bench.ros.wait_msg(f'{SIM}/axis1/true_position_steps').data - p1) < 1
+             and bench.status('axis1').link_reconnects >= 1, 5.0, 'standstill after reconnect')

@@ -190,8 +190,9 @@ class DriveNode(Node):
                 return
             self.connected = False
             for h in self.handles.values():
+                # velocity_deadline stays: a velocity run the drive may still be doing is stopped
+                # by the watchdog at the first poll after reconnecting.
                 h.connected = False
-                h.velocity_deadline = None
                 h.state = DriveState(state=State.DISCONNECTED, position_steps=h.state.position_steps,
                                      homed=h.state.homed)
             self.log.error(f'link lost on {self.bus.description}: {why}; reconnecting every '

@@ -1,0 +1,258 @@
+"""Lika RD4 end to end: rd4_sim and rd4_node as separate processes on a pty, driven through ROS.
+
+Two units share one Modbus RTU line. Every check goes through the node's topics and services;
+the simulator's true position topic, its fault injection and (after the node has ended) a raw
+serial client play the part of the real world.
+"""
+
+import json
+import math
+import signal
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+import pytest
+from rosharness import CONFIG, executable, wait_for
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64
+from std_srvs.srv import SetBool, Trigger
+from stepper_drivers_msgs.msg import DriveStatus
+from stepper_drivers_msgs.srv import InjectFault, ReadRegister, WriteRegister
+
+NODE = '/rd4_node'
+SIM = '/rd4_sim'
+STEPS_PER_RAD = 1024 / (2 * math.pi)       # Distance per revolution [0x00] = 1024
+
+
+class Bench:
+    """The simulator on a fresh pty and the node on its symlink, plus ROS helpers."""
+
+    def __init__(self, procs, ros, tmp_path):
+        self.procs, self.ros, self.tmp = procs, ros, tmp_path
+        self.port = str(tmp_path / 'rd4.pty')
+        self.storage = tmp_path / 'flash'
+        self.sim = procs.start('sim', [
+            executable('stepper_sim', 'rd4_sim'), '--ros-args',
+            '--params-file', str(CONFIG / 'rd4_sim.yaml'), '-p', f'port:={self.port}',
+            '-p', f'storage_dir:={self.storage}'])
+        self.sim.wait_line('ready', 30.0)
+        self.node = procs.start('node', [
+            executable('stepper_drivers', 'rd4_node'), '--ros-args',
+            '--params-file', str(CONFIG / 'rd4.yaml'), '-p', f'port:={self.port}',
+            '-p', 'reconnect_period_s:=0.2', '-p', 'publish_rate_hz:=20.0'])
+        ros.subscribe(JointState, '/joint_states')
+        ros.subscribe(DiagnosticArray, '/diagnostics')
+        for d in ('axis1', 'axis2'):
+            ros.subscribe(DriveStatus, f'{NODE}/{d}/status')
+            ros.subscribe(Float64, f'{SIM}/{d}/true_position_steps')
+            self.status(d, lambda m: m.connected, timeout_s=30.0, what=f'{d} connected')
+
+    def status(self, drive, cond=lambda m: True, timeout_s=10.0, what=''):
+        return self.ros.wait_msg(f'{NODE}/{drive}/status', cond, timeout_s,
+                                 what or f'{drive} status')
+
+    def true_steps(self, drive, steps=None):
+        """The simulated unit's position counter (rounded as Current position reports it);
+        with `steps`: wait until it reads that (the topic lags the status by up to 50 ms)."""
+        cond = (lambda m: True) if steps is None else (lambda m: round(m.data) == steps)
+        return round(self.ros.wait_msg(f'{SIM}/{drive}/true_position_steps', cond,
+                                       what=f'{drive} true position {steps}').data)
+
+    def call(self, drive, name, request=None, srv=Trigger, timeout_s=30.0):
+        return self.ros.call(srv, f'{NODE}/{drive}/{name}', request, timeout_s)
+
+    def enable(self, drive, on=True):
+        r = self.call(drive, 'enable', SetBool.Request(data=on), SetBool)
+        assert r.success, r.message
+        return r
+
+    def inject(self, kind, drive='axis1', code=0, value=0.0):
+        r = self.ros.call(InjectFault, SIM + '/inject_fault',
+                          InjectFault.Request(drive=drive, kind=kind, code=code, value=value))
+        assert r.success, r.message
+
+    def command(self, drive, topic, value):
+        self.ros.publish(Float64, f'{NODE}/{drive}/{topic}', Float64(data=value))
+
+    def link_values(self):
+        diag = self.ros.wait_msg('/diagnostics', lambda a: any(
+            s.name.endswith('link') for s in a.status))
+        link = next(s for s in diag.status if s.name.endswith('link'))
+        return {kv.key: kv.value for kv in link.values}
+
+    def settled(self, drive, period_s=0.3):
+        """Wait until the true position stops changing (bounded)."""
+        last = [None]
+
+        def still():
+            now = self.ros.wait_msg(f'{SIM}/{drive}/true_position_steps').data
+            same, last[0] = now == last[0], now
+            return same
+        wait_for(still, 10.0, f'{drive} at rest', period_s)
+        return round(last[0])
+
+
+@pytest.fixture
+def bench(procs, ros, tmp_path):
+    return Bench(procs, ros, tmp_path)
+
+
+def test_two_units_start_safe_and_enable_does_not_move(bench):
+    for d in ('axis1', 'axis2'):
+        st = bench.status(d, lambda m: m.state == 'SWITCH ON DISABLED', what=f'{d} SOD')
+        assert not st.enabled and not st.fault and 'Emergency' in st.alarms   # §5.3 power-up
+        assert st.address == ('1' if d == 'axis1' else '2')
+    before = bench.true_steps('axis1')
+    r = bench.enable('axis1')
+    assert 'OPERATION ENABLED' in r.message
+    st = bench.status('axis1', lambda m: m.enabled and not m.alarms)
+    assert st.state == 'OPERATION ENABLED' and not st.moving
+    assert bench.true_steps('axis1') == before
+    assert bench.status('axis2').state == 'SWITCH ON DISABLED'
+    js = bench.ros.wait_msg('/joint_states')
+    assert list(js.name) == ['joint1', 'joint2'] and js.header.stamp.sec > 0
+    assert len(js.effort) == 2            # Current value [0x07] in A
+
+
+def test_move_to_target_within_tolerance(bench):
+    bench.enable('axis1')
+    bench.command('axis1', 'position_command', 3.0)
+    st = bench.status('axis1', lambda m: not m.moving and m.target_reached,
+                      what='axis1 at 3.0 rad')
+    assert st.position_steps == round(3.0 * STEPS_PER_RAD)
+    assert st.position == pytest.approx(3.0, abs=1 / STEPS_PER_RAD)
+    bench.true_steps('axis1', round(3.0 * STEPS_PER_RAD))
+    js = bench.ros.wait_msg('/joint_states', lambda m: abs(m.position[0] - 3.0) < 0.01)
+    assert js.position[1] == 0.0          # axis2 untouched
+    assert bench.true_steps('axis2') == 0
+
+
+def test_jog_stops_by_the_node_watchdog(bench):
+    bench.enable('axis2')
+    bench.command('axis2', 'velocity_command', -4.0)
+    st = bench.status('axis2', lambda m: m.moving and m.velocity < -3.0, what='axis2 jogging')
+    assert st.mode == 'JOG'
+    st = bench.status('axis2', lambda m: not m.moving, timeout_s=5.0, what='watchdog stop')
+    assert st.enabled and st.velocity == 0.0 and st.position < 0
+    bench.node.wait_line('velocity watchdog', 5.0)
+    assert bench.settled('axis2') == st.position_steps
+
+
+def test_home_is_a_preset(bench):
+    bench.enable('axis1')
+    bench.command('axis1', 'position_command', 2.0)
+    bench.status('axis1', lambda m: m.target_reached and not m.moving, what='at 2.0')
+    r = bench.call('axis1', 'home')
+    assert r.success, r.message
+    assert 'no homing run' in r.message and 'preset' in r.message
+    st = bench.status('axis1', lambda m: m.homing_state == 'ATTAINED')
+    assert st.position_steps == 0 and st.homed
+    bench.true_steps('axis1', 0)                # re-referenced, nothing moved
+
+
+def test_alarm_shows_the_manuals_text_and_only_fault_reset_clears_it(bench):
+    bench.enable('axis1')
+    bench.inject('drive_fault', code=0x0100)      # Overtemperature (§8.1.2 alarm bit 8)
+    st = bench.status('axis1', lambda m: m.fault, what='fault in status')
+    assert st.state == 'FAULT' and st.fault_code == 0x0140      # + Emergency (bit 6)
+    assert 'Overtemperature' in st.fault_text and 'exceeding maximum ratings' in st.fault_text
+    assert 'Overtemperature' in st.alarms and not st.enabled
+    bench.ros.wait_msg('/diagnostics', lambda a: any(
+        s.name.endswith('axis1') and s.level == DiagnosticStatus.ERROR for s in a.status))
+    refused = st.commands_refused
+    bench.command('axis1', 'position_command', 1.0)
+    st = bench.status('axis1', lambda m: m.commands_refused > refused)
+    assert 'fault_reset' in st.last_refusal
+    r = bench.call('axis1', 'fault_reset')
+    assert not r.success and 'Overtemperature' in r.message
+    bench.inject('clear_fault')
+    r = bench.call('axis1', 'fault_reset')
+    assert r.success, r.message
+    st = bench.status('axis1', lambda m: not m.fault)
+    assert st.state == 'SWITCH ON DISABLED' and not st.alarms
+    bench.enable('axis1')
+
+
+def test_save_params_is_verified_and_stored(bench):
+    r = bench.call('axis1', 'write_register',
+                   WriteRegister.Request(address='JOG_STEP_LENGTH', data_type='u16', value=250),
+                   WriteRegister)
+    assert r.success, r.message
+    r = bench.call('axis1', 'read_register',
+                   ReadRegister.Request(address='hr:0x19', data_type='u16'), ReadRegister)
+    assert r.success and r.value == 250
+    r = bench.call('axis1', 'save_params')
+    assert r.success, r.message
+    assert 'read back' in r.message
+    stored = wait_for(lambda: list(bench.storage.glob('rd4_axis1_node1.json')), 5.0, 'stored')
+    assert json.loads(stored[0].read_text())['values']['JOG_STEP_LENGTH'] == 250
+    # raw writes are refused where not allowed; reads of input registers work
+    r = bench.call('axis2', 'write_register',
+                   WriteRegister.Request(address='0x19', data_type='u16', value=1),
+                   WriteRegister)
+    assert not r.success and 'allow_raw_write' in r.message
+    r = bench.call('axis2', 'read_register',
+                   ReadRegister.Request(address='ir:0x01', data_type='u16'), ReadRegister)
+    assert r.success and r.value & 0x0020            # Status word: Alarm (power-up emergency)
+
+
+def test_pty_closed_and_reopened_reconnects_without_motion(bench):
+    bench.enable('axis1')
+    bench.command('axis1', 'velocity_command', 5.0)
+    bench.status('axis1', lambda m: m.moving, what='jogging')
+    bench.inject('cut')
+    st = bench.status('axis1', lambda m: m.state == 'DISCONNECTED', what='DISCONNECTED')
+    assert not st.connected
+    bench.ros.wait_msg('/diagnostics', lambda a: any(
+        s.name.endswith('link') and s.level == DiagnosticStatus.ERROR for s in a.status))
+    stopped_at = bench.settled('axis1')        # the unit's own watchdog stopped the jog (1 s)
+    bench.inject('link_ok')
+    st = bench.status('axis1', lambda m: m.connected, timeout_s=15.0, what='reconnected')
+    st = bench.status('axis1', lambda m: m.link_reconnects >= 1)
+    assert st.state == 'FAULT' and 'Watch dog' in st.fault_text and not st.moving
+    assert st.position_steps == stopped_at
+    bench.node.wait_line('reconnecting', 1.0)
+    r = bench.call('axis1', 'fault_reset')
+    assert r.success, r.message
+    assert bench.settled('axis1') == stopped_at      # nothing resumed
+
+
+def test_crc_corrupt_replies_are_counted_and_survived(bench):
+    before = int(bench.link_values()['crc_errors'])
+    for i in range(3):
+        bench.inject('corrupt_reply', code=1)        # the next reply only: the retry is good
+        wait_for(lambda: int(bench.link_values()['crc_errors']) >= before + i + 1, 10.0,
+                 f'CRC error {i + 1} counted')
+    values = bench.link_values()
+    assert int(values['retries']) >= 3 and values['reconnects'] == '0'
+    st = bench.status('axis1')
+    assert st.connected and st.link_errors >= 3 and st.link_reconnects == 0
+
+
+def test_sigterm_stops_disables_and_leaves_the_watchdog_off(bench):
+    import serial
+    bench.enable('axis1')
+    bench.command('axis1', 'velocity_command', 5.0)
+    bench.status('axis1', lambda m: m.moving, what='jogging')
+    assert bench.node.stop(signal.SIGTERM) == 0
+    bench.settled('axis1')
+    # The line is free now: ask the unit itself (manual frame: FC03 Control Word)
+    port = serial.Serial(bench.port, 19200, parity='N', stopbits=2, timeout=1.0)
+    try:
+        port.write(bytes.fromhex('01 03 00 2A 00 01 A5 C2'))
+        reply = port.read(7)
+    finally:
+        port.close()
+    assert reply[:3] == bytes.fromhex('01 03 02')
+    assert int.from_bytes(reply[3:5], 'big') == 0x0080     # Stop low, watchdog/torque off
+
+
+def test_bad_parameter_fails_start_up_with_one_line(procs, tmp_path):
+    text = (CONFIG / 'rd4.yaml').read_text().replace('node_id: 2', 'node_id: 300')
+    f = tmp_path / 'bad.yaml'
+    f.write_text(text)
+    p = procs.start('bad', [executable('stepper_drivers', 'rd4_node'), '--ros-args',
+                            '--params-file', str(f)])
+    assert p.proc.wait(timeout=20) == 2
+    out = p.output().strip().splitlines()
+    assert out[-1] == ('rd4_node: parameter drives.axis2.node_id: 300 is out of range '
+                       '(allowed: an integer from 1 to 247)'), out
