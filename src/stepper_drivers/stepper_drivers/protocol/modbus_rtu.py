@@ -1,0 +1,511 @@
+"""Modbus RTU on a serial line: the frame codec (driver and simulator) and a master (driver).
+
+No rclpy. The codec follows the Modbus over Serial Line V1.02 frame, which the Lika RD4 manual
+(§7.2, §7.3.1) describes:
+
+    [ silence >= t3.5 ][ address ][ function code ][ data (0..252 bytes) ][ CRC lo ][ CRC hi ]
+
+CRC-16/Modbus (polynomial 0xA001 reflected, initial 0xFFFF) is sent low byte first; register values
+are big-endian (§7.3.1). Characters are 11 bits on the line: start, 8 data, parity (or a second
+stop bit when there is no parity), stop (§7.3.1), so a frame of n bytes takes n * 11 / baud s.
+
+`ModbusRtuBus` is the master: one request at a time (§7.1), the reply framed by its length (known
+from the function code and byte count), its CRC checked, a bad reply or a timeout retried; it keeps
+the t3.5 silence before every request. It is written on pyserial rather than pymodbus because
+pymodbus 3.16's RTU framer drops a reply with a bad CRC silently (FramerRTU.decode: "Frame CRC
+check failed, possible garbage", debug log only) and then waits for the whole timeout: CRC errors
+could be neither counted nor retried at once, and its sync client adds ~4 character times of
+polling per transaction (research/transports.md §B1 item 5).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import os
+import select
+import threading
+import time
+from typing import Any, Mapping, Sequence
+
+from .. import drive
+
+logger = logging.getLogger(__name__)
+
+FC_READ_HOLDING_REGISTERS = 0x03      # §7.4.1 "03 Read Holding Registers"
+FC_READ_INPUT_REGISTERS = 0x04        # §7.4.1 "04 Read Input Register"
+FC_WRITE_SINGLE_REGISTER = 0x06       # §7.4.1 "06 Write Single Register"
+FC_WRITE_MULTIPLE_REGISTERS = 0x10    # §7.4.1 "16 Write Multiple Registers"
+FUNCTION_CODES = (FC_READ_HOLDING_REGISTERS, FC_READ_INPUT_REGISTERS, FC_WRITE_SINGLE_REGISTER,
+                  FC_WRITE_MULTIPLE_REGISTERS)
+EXCEPTION_FLAG = 0x80                 # §8.2: exception function code = FC + 0x80
+
+# Modbus Application Protocol V1.1b §7 (the RD4 manual defers to it, §7.2 and §8.2).
+ILLEGAL_FUNCTION = 0x01
+ILLEGAL_DATA_ADDRESS = 0x02
+ILLEGAL_DATA_VALUE = 0x03
+SERVER_DEVICE_FAILURE = 0x04
+EXCEPTION_NAMES: Mapping[int, str] = {
+    ILLEGAL_FUNCTION: 'ILLEGAL FUNCTION',
+    ILLEGAL_DATA_ADDRESS: 'ILLEGAL DATA ADDRESS',
+    ILLEGAL_DATA_VALUE: 'ILLEGAL DATA VALUE',
+    SERVER_DEVICE_FAILURE: 'SERVER DEVICE FAILURE',
+    0x05: 'ACKNOWLEDGE',
+    0x06: 'SERVER DEVICE BUSY',
+}
+
+MAX_READ_COUNT = 125           # §7.4.1 FC03/FC04: 1 to 125 (0x7D)
+MAX_WRITE_COUNT = 123          # §7.4.1 FC16: 0x0001 to 0x007B
+MAX_FRAME_BYTES = 256          # §7.3.1 maximum RTU frame
+BROADCAST_ADDRESS = 0          # §7.1 (the RD4 does not implement broadcast)
+MAX_SLAVE_ADDRESS = 247        # §4.4.1, §7.1
+BITS_PER_CHAR = 11             # §7.3.1: 1 start + 8 data + parity (or 2nd stop) + 1 stop
+SPIN_S = 0.0002                # last part of the t3.5 wait spent spinning, not sleeping
+PARITIES = ('N', 'E', 'O')
+
+
+# ----------------------------------------------------------------------------------- timing
+def char_time_s(baud: int) -> float:
+    """One 11-bit RTU character on the line (§7.3.1)."""
+    if baud <= 0:
+        raise ValueError(f'baud rate must be > 0, got {baud}')
+    return BITS_PER_CHAR / baud
+
+
+def frame_time_s(n_bytes: int, baud: int) -> float:
+    return n_bytes * char_time_s(baud)
+
+
+def t35_s(baud: int) -> float:
+    """The silent interval between frames: 3.5 characters (§7.3.1: 4 ms at 9600, 2 ms at 19200).
+
+    Above 19200 baud Modbus over Serial Line V1.02 §2.5.1.1 fixes it at 1.75 ms.
+    """
+    return 0.00175 if baud > 19200 else 3.5 * char_time_s(baud)
+
+
+# -------------------------------------------------------------------------------------- CRC
+def _crc_table() -> list[int]:
+    table = []
+    for byte in range(256):
+        crc = byte
+        for _ in range(8):
+            crc = (crc >> 1) ^ 0xA001 if crc & 1 else crc >> 1
+        table.append(crc)
+    return table
+
+
+_CRC_TABLE = _crc_table()
+
+
+def crc16(data: bytes) -> int:
+    """CRC-16/Modbus: reflected polynomial 0xA001, initial value 0xFFFF, no final XOR."""
+    crc = 0xFFFF
+    for byte in data:
+        crc = (crc >> 8) ^ _CRC_TABLE[(crc ^ byte) & 0xFF]
+    return crc
+
+
+def add_crc(body: bytes) -> bytes:
+    """Append the CRC, low byte first (§7.3.1 frame: 'CRC Low, CRC Hi')."""
+    crc = crc16(body)
+    return bytes(body) + bytes((crc & 0xFF, crc >> 8))
+
+
+def crc_ok(frame: bytes) -> bool:
+    # The CRC over a frame including its own (low byte first) CRC is 0.
+    return len(frame) >= 4 and crc16(frame) == 0
+
+
+# ---------------------------------------------------------------------------------- frames
+class ModbusExceptionError(Exception):
+    """An exception response: raised by the simulator's handlers, decoded by the master."""
+
+    def __init__(self, function_code: int, code: int, text: str = ''):
+        self.function_code = function_code & 0x7F
+        self.code = code
+        name = EXCEPTION_NAMES.get(code, 'UNKNOWN EXCEPTION')
+        super().__init__(f'exception 0x{code:02X} {name}' + (f': {text}' if text else ''))
+
+
+class FrameError(Exception):
+    """A frame that does not parse (the caller treats it like line noise)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Request:
+    """One request PDU with its slave address; `values` only for writes."""
+
+    unit: int
+    function_code: int
+    address: int
+    count: int = 1
+    values: tuple[int, ...] = ()
+
+    def encode(self) -> bytes:
+        fc = self.function_code
+        head = bytes((self.unit & 0xFF, fc)) + self.address.to_bytes(2, 'big')
+        if fc in (FC_READ_HOLDING_REGISTERS, FC_READ_INPUT_REGISTERS):
+            return add_crc(head + self.count.to_bytes(2, 'big'))
+        if fc == FC_WRITE_SINGLE_REGISTER:
+            return add_crc(head + (self.values[0] & 0xFFFF).to_bytes(2, 'big'))
+        if fc == FC_WRITE_MULTIPLE_REGISTERS:
+            data = b''.join((v & 0xFFFF).to_bytes(2, 'big') for v in self.values)
+            return add_crc(head + len(self.values).to_bytes(2, 'big') + bytes((len(data),)) + data)
+        raise ValueError(f'function code 0x{fc:02X} is not implemented (03, 04, 06, 16)')
+
+    @property
+    def reply_length(self) -> int:
+        """Bytes of the normal response frame (§7.4.1)."""
+        if self.function_code in (FC_READ_HOLDING_REGISTERS, FC_READ_INPUT_REGISTERS):
+            return 5 + 2 * self.count
+        return 8
+
+    def describe(self) -> str:
+        fc = self.function_code
+        if fc in (FC_READ_HOLDING_REGISTERS, FC_READ_INPUT_REGISTERS):
+            return f'FC{fc:02d} read {self.count} at 0x{self.address:02X}'
+        if fc == FC_WRITE_SINGLE_REGISTER:
+            return f'FC06 write 0x{self.values[0]:04X} at 0x{self.address:02X}'
+        return f'FC16 write {self.count} at 0x{self.address:02X}'
+
+
+def read_request(unit: int, function_code: int, address: int, count: int) -> Request:
+    if function_code not in (FC_READ_HOLDING_REGISTERS, FC_READ_INPUT_REGISTERS):
+        raise ValueError(f'not a read function code: {function_code}')
+    if not 1 <= count <= MAX_READ_COUNT:
+        raise ValueError(f'read of {count} registers: allowed 1..{MAX_READ_COUNT} (§7.4.1)')
+    return Request(unit, function_code, address, count)
+
+
+def write_single_request(unit: int, address: int, value: int) -> Request:
+    return Request(unit, FC_WRITE_SINGLE_REGISTER, address, 1, (value & 0xFFFF,))
+
+
+def write_multiple_request(unit: int, address: int, values: Sequence[int]) -> Request:
+    if not 1 <= len(values) <= MAX_WRITE_COUNT:
+        raise ValueError(f'write of {len(values)} registers: allowed 1..{MAX_WRITE_COUNT} '
+                         '(§7.4.1)')
+    return Request(unit, FC_WRITE_MULTIPLE_REGISTERS, address, len(values),
+                   tuple(v & 0xFFFF for v in values))
+
+
+def request_length(head: bytes) -> int | None:
+    """Length of a request frame from its first bytes; None: unknown yet (or unknown FC)."""
+    if len(head) < 2:
+        return None
+    fc = head[1]
+    if fc in (FC_READ_HOLDING_REGISTERS, FC_READ_INPUT_REGISTERS, FC_WRITE_SINGLE_REGISTER):
+        return 8
+    if fc == FC_WRITE_MULTIPLE_REGISTERS:
+        return 9 + head[6] if len(head) >= 7 else None
+    return None
+
+
+def response_length(head: bytes) -> int | None:
+    """Length of a response frame from its first 3 bytes; None for an unknown function code."""
+    if len(head) < 3:
+        return None
+    fc = head[1]
+    if fc & EXCEPTION_FLAG:
+        return 5
+    if fc in (FC_READ_HOLDING_REGISTERS, FC_READ_INPUT_REGISTERS):
+        return 5 + head[2]
+    if fc in (FC_WRITE_SINGLE_REGISTER, FC_WRITE_MULTIPLE_REGISTERS):
+        return 8
+    return None
+
+
+def parse_request(frame: bytes) -> Request:
+    """Decode a request frame whose CRC was checked; ModbusExceptionError for what a slave
+    answers with an exception, in the V1.1b §6 order: function code (01), quantity and byte
+    count (03). The address range (02) is the device's business."""
+    if len(frame) < 4:
+        raise FrameError(f'{len(frame)} bytes is too short for a frame')
+    unit, fc = frame[0], frame[1]
+    pdu = frame[2:-2]
+    if fc not in FUNCTION_CODES:
+        raise ModbusExceptionError(fc, ILLEGAL_FUNCTION, f'function code 0x{fc:02X}')
+    if fc == FC_WRITE_MULTIPLE_REGISTERS:
+        if len(pdu) < 5:
+            raise ModbusExceptionError(fc, ILLEGAL_DATA_VALUE, 'FC16 request too short')
+        address, count, byte_count = (int.from_bytes(pdu[0:2], 'big'),
+                                      int.from_bytes(pdu[2:4], 'big'), pdu[4])
+        data = pdu[5:]
+        if not 1 <= count <= MAX_WRITE_COUNT or byte_count != 2 * count \
+                or len(data) != byte_count:
+            raise ModbusExceptionError(fc, ILLEGAL_DATA_VALUE,
+                                       f'quantity {count}, byte count {byte_count}, '
+                                       f'{len(data)} data bytes')
+        values = tuple(int.from_bytes(data[i:i + 2], 'big') for i in range(0, len(data), 2))
+        return Request(unit, fc, address, count, values)
+    if len(pdu) != 4:
+        raise ModbusExceptionError(fc, ILLEGAL_DATA_VALUE, f'{len(pdu)}-byte PDU data')
+    address, word = int.from_bytes(pdu[0:2], 'big'), int.from_bytes(pdu[2:4], 'big')
+    if fc == FC_WRITE_SINGLE_REGISTER:
+        return Request(unit, fc, address, 1, (word,))
+    if not 1 <= word <= MAX_READ_COUNT:
+        raise ModbusExceptionError(fc, ILLEGAL_DATA_VALUE, f'quantity {word}')
+    return Request(unit, fc, address, word)
+
+
+def read_response(unit: int, function_code: int, registers: Sequence[int]) -> bytes:
+    data = b''.join((r & 0xFFFF).to_bytes(2, 'big') for r in registers)
+    return add_crc(bytes((unit, function_code, len(data))) + data)
+
+
+def write_single_response(request_frame: bytes) -> bytes:
+    """§7.4.1 FC06: 'The normal response is an echo of the request'."""
+    return bytes(request_frame)
+
+
+def write_multiple_response(unit: int, address: int, count: int) -> bytes:
+    return add_crc(bytes((unit, FC_WRITE_MULTIPLE_REGISTERS)) + address.to_bytes(2, 'big')
+                   + count.to_bytes(2, 'big'))
+
+
+def exception_response(unit: int, function_code: int, code: int) -> bytes:
+    return add_crc(bytes((unit, (function_code | EXCEPTION_FLAG) & 0xFF, code)))
+
+
+def response_for(request: Request, request_frame: bytes, registers: Sequence[int] = ()) -> bytes:
+    """The normal response to a request (registers for reads)."""
+    fc = request.function_code
+    if fc in (FC_READ_HOLDING_REGISTERS, FC_READ_INPUT_REGISTERS):
+        return read_response(request.unit, fc, registers)
+    if fc == FC_WRITE_SINGLE_REGISTER:
+        return write_single_response(request_frame)
+    return write_multiple_response(request.unit, request.address, request.count)
+
+
+class ReplyMismatch(Exception):
+    """A well-formed reply that does not answer the request (address, FC, length, echo)."""
+
+
+def parse_response(frame: bytes, request: Request, request_frame: bytes) -> list[int]:
+    """Registers of a read reply ([] for a write); ModbusExceptionError, ReplyMismatch."""
+    if frame[0] != request.unit:
+        raise ReplyMismatch(f'reply from address {frame[0]}, asked {request.unit}')
+    fc = frame[1]
+    if fc == request.function_code | EXCEPTION_FLAG:
+        raise ModbusExceptionError(fc, frame[2])
+    if fc != request.function_code:
+        raise ReplyMismatch(f'reply with function code 0x{fc:02X} to '
+                            f'0x{request.function_code:02X}')
+    if fc in (FC_READ_HOLDING_REGISTERS, FC_READ_INPUT_REGISTERS):
+        if frame[2] != 2 * request.count or len(frame) != 5 + frame[2]:
+            raise ReplyMismatch(f'{frame[2]} data bytes for {request.count} registers')
+        return [int.from_bytes(frame[3 + 2 * i:5 + 2 * i], 'big') for i in range(request.count)]
+    if fc == FC_WRITE_SINGLE_REGISTER:
+        if frame != request_frame:
+            raise ReplyMismatch(f'FC06 reply {frame.hex(" ")} is not the echo of '
+                                f'{request_frame.hex(" ")}')
+        return []
+    if frame[2:6] != request_frame[2:6]:
+        raise ReplyMismatch(f'FC16 reply for address/quantity {frame[2:6].hex(" ")}, asked '
+                            f'{request_frame[2:6].hex(" ")}')
+    return []
+
+
+# ---------------------------------------------------------------------------------- master
+class _NoReply(Exception):
+    pass
+
+
+class _BadCrc(Exception):
+    pass
+
+
+class ModbusRtuBus(drive.Bus):
+    """The master on one serial line; several slaves (by address) share it.
+
+    Every request waits for t3.5 of silence since the last byte on the line, is written whole,
+    and its reply is read by length. A timeout, a CRC error or a reply that does not match the
+    request is counted and the request sent again (`retries` times); then LinkError. An exception
+    reply is a DriveError (the slave answered: the link is fine), never retried.
+    """
+
+    def __init__(self, port: str, baudrate: int = 9600, parity: str = 'E', stopbits: int = 1,
+                 timeout_s: float = 0.5, retries: int = 1):
+        self.port = str(port)
+        self.baudrate = int(baudrate)
+        self.parity = str(parity).upper()
+        self.stopbits = int(stopbits)
+        self.timeout_s = float(timeout_s)
+        self.retries = int(retries)
+        if self.parity not in PARITIES:
+            raise ValueError(f'parity: {parity!r} is not allowed (allowed: N, E, O)')
+        self.t35_s = t35_s(self.baudrate)
+        self.description = (f'modbus rtu {self.port} {self.baudrate} 8{self.parity}'
+                            f'{self.stopbits}')
+        self.transactions = 0
+        self.errors = 0
+        self.timeouts = 0
+        self.crc_errors = 0
+        self.mismatches = 0
+        self.exceptions = 0
+        self.retried = 0
+        self.stale_bytes = 0
+        self._lock = threading.Lock()
+        self._serial: Any = None
+        self._idle_at = 0.0       # monotonic time from which the line has been silent >= t3.5
+
+    # Life cycle ---------------------------------------------------------------------------------
+    def open(self) -> None:
+        import serial
+        with self._lock:
+            if self._serial is not None:
+                return
+            try:
+                port = serial.serial_for_url(
+                    self.port, baudrate=self.baudrate, bytesize=serial.EIGHTBITS,
+                    parity=self.parity, stopbits=self.stopbits, timeout=self.timeout_s,
+                    exclusive=True, do_not_open=True)
+                port.open()
+            except Exception as exc:  # noqa: BLE001 - termios.error too (not an OSError)
+                code = getattr(exc, 'errno', None) or (exc.args[0] if exc.args else None)
+                hint = (' (a pseudo-terminal may refuse parity E/O: use N there)'
+                        if self.parity != 'N' and code == 22 else '')
+                raise drive.LinkError(f'cannot open {self.port} at {self.baudrate} baud '
+                                      f'8{self.parity}{self.stopbits}: {exc}{hint}') from None
+            self._serial = port
+            self._idle_at = time.monotonic() + self.t35_s
+            logger.info('opened %s', self.description)
+
+    def close(self) -> None:
+        with self._lock:
+            port, self._serial = self._serial, None
+            if port is not None:
+                try:
+                    port.close()
+                except Exception as exc:  # noqa: BLE001 - a dead port may fail any way
+                    logger.debug('close %s: %s', self.port, exc)
+
+    @property
+    def is_open(self) -> bool:
+        return self._serial is not None
+
+    def counters(self) -> dict[str, int]:
+        return {'transactions': self.transactions, 'errors': self.errors,
+                'timeouts': self.timeouts, 'crc_errors': self.crc_errors,
+                'mismatches': self.mismatches, 'exceptions': self.exceptions,
+                'retries': self.retried, 'stale_bytes': self.stale_bytes}
+
+    # Transactions -------------------------------------------------------------------------------
+    def read_holding_registers(self, unit: int, address: int, count: int) -> list[int]:
+        return self.transact(read_request(unit, FC_READ_HOLDING_REGISTERS, address, count))
+
+    def read_input_registers(self, unit: int, address: int, count: int) -> list[int]:
+        return self.transact(read_request(unit, FC_READ_INPUT_REGISTERS, address, count))
+
+    def write_register(self, unit: int, address: int, value: int) -> None:
+        self.transact(write_single_request(unit, address, value))
+
+    def write_registers(self, unit: int, address: int, values: Sequence[int]) -> None:
+        self.transact(write_multiple_request(unit, address, values))
+
+    def transact(self, request: Request) -> list[int]:
+        frame = request.encode()
+        what = f'{self.port} unit {request.unit}: {request.describe()}'
+        with self._lock:
+            port = self._serial
+            if port is None:
+                self.errors += 1
+                raise drive.LinkError(f'{what}: port not open')
+            problems = []
+            for attempt in range(1 + self.retries):
+                if attempt:
+                    self.retried += 1
+                self.transactions += 1
+                try:
+                    reply = self._exchange(port, frame, request)
+                    return parse_response(reply, request, frame)
+                except ModbusExceptionError as exc:
+                    self.errors += 1
+                    self.exceptions += 1
+                    raise drive.DriveError(f'{what}: {exc}') from None
+                except _NoReply as exc:
+                    self.errors += 1
+                    self.timeouts += 1
+                    problems.append(str(exc))
+                except _BadCrc as exc:
+                    self.errors += 1
+                    self.crc_errors += 1
+                    problems.append(str(exc))
+                except ReplyMismatch as exc:
+                    self.errors += 1
+                    self.mismatches += 1
+                    problems.append(str(exc))
+                except OSError as exc:   # serial.SerialException is an OSError (port gone)
+                    self.errors += 1
+                    raise drive.LinkError(f'{what}: {exc}') from None
+                logger.debug('%s: %s', what, problems[-1])
+            raise drive.LinkError(f'{what}: ' + '; '.join(problems))
+
+    def _exchange(self, port: Any, frame: bytes, request: Request) -> bytes:
+        self._wait_idle()
+        if port.in_waiting:
+            stale = port.read(port.in_waiting)     # a late reply to an earlier request
+            self.stale_bytes += len(stale)
+        port.write(frame)
+        # The request and the reply take their time on the line; timeout_s is the slave's part.
+        deadline = (time.monotonic() + frame_time_s(len(frame) + request.reply_length,
+                                                    self.baudrate) + self.timeout_s)
+        reply = self._read_frame(port, deadline)
+        self._idle_at = time.monotonic() + self.t35_s
+        length = response_length(reply)
+        if len(reply) < 3 or (length is not None and len(reply) < length):
+            raise _NoReply(f'no reply within {self.timeout_s:g} s' if not reply else
+                           f'reply cut short: {reply.hex(" ")}')
+        if length is None:
+            self._drain(port)
+            raise _BadCrc(f'unparsable reply {reply.hex(" ")}...')
+        if len(reply) > length:
+            self.stale_bytes += len(reply) - length
+            reply = reply[:length]
+        if not crc_ok(reply):
+            self._drain(port)
+            raise _BadCrc(f'CRC error in reply {reply.hex(" ")}')
+        return reply
+
+    def _wait_idle(self) -> None:
+        """§7.3.1: a request only after t3.5 of silence. Sleep, then spin the last 0.2 ms:
+        a sleep overshoots by ~0.1 ms, which at 19200 baud is 0.5 % of a poll."""
+        wait = self._idle_at - time.monotonic()
+        if wait > SPIN_S:
+            time.sleep(wait - SPIN_S)
+        while time.monotonic() < self._idle_at:
+            pass
+
+    @staticmethod
+    def _read_frame(port: Any, deadline: float) -> bytes:
+        """Bytes until a whole reply (its length known from the first 3) or the deadline."""
+        try:
+            fd = port.fileno()          # a posix port: select + read what is there
+        except (AttributeError, OSError, NotImplementedError, ValueError):
+            fd = None
+        buf = b''
+        while True:
+            need = 3 if len(buf) < 3 else response_length(buf)
+            if need is None or len(buf) >= need:
+                return buf
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return buf
+            if fd is None:
+                port.timeout = left
+                buf += port.read(need - len(buf))
+                continue
+            readable, _, _ = select.select([fd], [], [], left)
+            if readable:
+                chunk = os.read(fd, MAX_FRAME_BYTES)
+                if not chunk:
+                    raise OSError(f'{port.port}: readable but no data (device gone)')
+                buf += chunk
+
+    def _drain(self, port: Any) -> None:
+        """After garbage: discard bytes until the line has been silent for t3.5."""
+        port.timeout = self.t35_s
+        while port.read(256):
+            pass
+        self._idle_at = time.monotonic()
