@@ -38,7 +38,10 @@ class Bench:
         self.node = procs.start('node', [
             executable('stepper_drivers', 'rd4_node'), '--ros-args',
             '--params-file', str(CONFIG / 'rd4.yaml'), '-p', f'port:={self.port}',
-            '-p', 'reconnect_period_s:=0.2', '-p', 'publish_rate_hz:=20.0'])
+            '-p', 'reconnect_period_s:=0.2', '-p', 'publish_rate_hz:=20.0',
+            # the simulator is a Python process on a shared 2-core machine: a reply can be later
+            # than the 0.1 s a real line needs (config/rd4.yaml), and no test is about that
+            '-p', 'timeout_s:=0.3'])
         ros.subscribe(JointState, '/joint_states')
         ros.subscribe(DiagnosticArray, '/diagnostics')
         for d in ('axis1', 'axis2'):

@@ -5,7 +5,8 @@ from setuptools import find_packages, setup
 package_name = 'stepper_drivers'
 
 # One line per vendor node: '<exe> = stepper_drivers.entry_points:<function>'.
-NODES = ['xplus_mt_node']
+NODES = ['xplus_mt_node', 'xmind_k_node', 'rd4_node', 'vector_step_node', 'socketcand_broker',
+         'stepperctl']
 
 setup(
     name=package_name,

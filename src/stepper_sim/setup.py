@@ -5,7 +5,10 @@ from setuptools import find_packages, setup
 package_name = 'stepper_sim'
 
 # One line per simulator: '<exe> = stepper_sim.<module>:main'.
-SIMS = {'xplus_mt_sim': 'stepper_sim.xplus_mt_sim:main'}
+SIMS = {'xplus_mt_sim': 'stepper_sim.xplus_mt_sim:main',
+        'rd4_sim': 'stepper_sim.rd4_sim:main',
+        'xmind_k_sim': 'stepper_sim.xmind_k_sim:main',
+        'vector_step_sim': 'stepper_sim.vector_step_sim:main'}
 
 setup(
     name=package_name,

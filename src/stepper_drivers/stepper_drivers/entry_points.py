@@ -57,3 +57,8 @@ def vector_step_node() -> None:
 def socketcand_broker() -> None:
     from .protocol.socketcand_broker import main
     sys.exit(main())
+
+
+def stepperctl() -> None:
+    from .cli.main import main
+    sys.exit(main())

@@ -59,13 +59,16 @@ class DriveHandle:
         self.drive = drive
         self.conv = cfg.conversion
         self.state = DriveState(state=State.DISCONNECTED)
-        self.connected = False
+        self.connected = False      # this drive answers (see DriveNode.connected for the bus)
         self.identity: dict[str, str] = {}
         self.velocity_deadline: float | None = None  # watchdog, time.monotonic()
         self.commands_refused = 0
         self.last_refusal = ''
         self.last_error = ''
         self.polls = 0              # read_state() calls that succeeded; services wait on it
+        self.reconnects = 0         # successful connects (the first one included)
+        self.next_connect = 0.0     # time.monotonic() of the next attempt while disconnected
+        self.backoff_s = node.bus_params['reconnect_period_s']
 
     def param(self, name: str) -> Any:
         return self.node.get_parameter(f'drives.{self.name}.{name}').value
@@ -109,10 +112,6 @@ class DriveNode(Node):
                 raise ParameterError(str(e)) from None
             self.handles[dcfg.name] = DriveHandle(self, dcfg, drive)
         self.by_joint = {h.cfg.joint_name: h for h in self.handles.values()}
-        self.connected = False
-        self.reconnects = 0
-        self.next_connect = 0.0
-        self.backoff_s = self.bus_params['reconnect_period_s']
         self.shutting_down = False
 
         self.poll_group = MutuallyExclusiveCallbackGroup()
@@ -166,16 +165,23 @@ class DriveNode(Node):
                      cancel_callback=lambda _goal: CancelResponse.ACCEPT, callback_group=g)
 
     # ----------------------------------------------------------------------------- bus access
+    # Link state is kept per drive: a CANopen node whose heartbeat stops, or an RS-485 unit that
+    # no longer answers, is DISCONNECTED while the others on the bus go on. When no drive is left
+    # the bus itself is closed and reopened on the next attempt.
+    @property
+    def connected(self) -> bool:
+        return any(h.connected for h in self.handles.values())
+
     def call(self, h: DriveHandle, fn: Callable, *args):
-        """Run one vendor call under the bus lock; a LinkError takes the whole bus down."""
-        if not self.connected:
+        """Run one vendor call under the bus lock; a LinkError disconnects the drive."""
+        if not h.connected:
             raise CommandRefused(f'drive {h.name} is DISCONNECTED ({self.bus.description}); '
                                  'the node is reconnecting')
         with self.bus_lock:
             try:
                 return fn(*args)
             except LinkError as e:
-                self._link_lost(str(e))
+                self._drive_lost(h, str(e))
                 raise
             except DriveError:
                 raise
@@ -184,54 +190,53 @@ class DriveNode(Node):
                                + traceback.format_exc())
                 raise DriveError(f'internal error in {fn.__name__}: {e!r}') from e
 
-    def _link_lost(self, why: str) -> None:
+    def _drive_lost(self, h: DriveHandle, why: str) -> None:
         with self.bus_lock:
-            if not self.connected:
+            if not h.connected:
                 return
-            self.connected = False
-            for h in self.handles.values():
-                # velocity_deadline stays: a velocity run the drive may still be doing is stopped
-                # by the watchdog at the first poll after reconnecting.
-                h.connected = False
-                h.state = DriveState(state=State.DISCONNECTED, position_steps=h.state.position_steps,
-                                     homed=h.state.homed)
-            self.log.error(f'link lost on {self.bus.description}: {why}; reconnecting every '
+            # velocity_deadline stays: a velocity run the drive may still be doing is stopped by
+            # the watchdog at the first poll after reconnecting.
+            h.connected = False
+            h.state = DriveState(state=State.DISCONNECTED, position_steps=h.state.position_steps,
+                                 homed=h.state.homed)
+            h.backoff_s = self.bus_params['reconnect_period_s']
+            h.next_connect = time.monotonic() + h.backoff_s
+            self.log.error(f'{h.name}: link lost ({why}); reconnecting every '
                            f"{self.bus_params['reconnect_period_s']:g} s and more (back-off)")
-            try:
-                self.bus.close()
-            except Exception as e:  # noqa: BLE001 - closing a dead link may fail any way
-                self.log.debug(f'close after link loss: {e}')
-            self.backoff_s = self.bus_params['reconnect_period_s']
-            self.next_connect = time.monotonic() + self.backoff_s
+            if not self.connected:
+                self._close_bus()
 
-    def try_connect(self) -> bool:
+    def _close_bus(self) -> None:
+        try:
+            self.bus.close()
+        except Exception as e:  # noqa: BLE001 - closing a dead link may fail any way
+            self.log.debug(f'close after link loss: {e}')
+
+    def try_connect(self, h: DriveHandle) -> bool:
+        """One connection attempt for one drive (opening the bus first if it is closed)."""
         with self.bus_lock:
             try:
                 if not self.bus.is_open:
                     self.bus.open()
-                for h in self.handles.values():
-                    h.identity = h.drive.connect()
-                    h.state = h.drive.read_state()
-                    h.connected = True
+                h.identity = h.drive.connect()
+                h.state = h.drive.read_state()
             except Exception as e:  # noqa: BLE001 - DriveError, or a vendor/library bug
                 if not isinstance(e, DriveError):
-                    self.log.error(f'connect: {e!r}\n' + traceback.format_exc())
-                try:
-                    self.bus.close()
-                except Exception:  # noqa: BLE001
-                    pass
-                if self.reconnects == 0 or self.backoff_s == self.bus_params['reconnect_period_s']:
-                    self.log.warning(f'cannot connect on {self.bus.description}: {e}; retrying')
-                self.next_connect = time.monotonic() + self.backoff_s
-                self.backoff_s = min(self.backoff_s * 2, 8 * self.bus_params['reconnect_period_s'])
+                    self.log.error(f'{h.name}: connect: {e!r}\n' + traceback.format_exc())
+                if not self.connected:
+                    self._close_bus()
+                if h.backoff_s == self.bus_params['reconnect_period_s'] or h.reconnects == 0:
+                    self.log.warning(f'{h.name}: cannot connect on {self.bus.description}: {e}; '
+                                     'retrying')
+                h.next_connect = time.monotonic() + h.backoff_s
+                h.backoff_s = min(h.backoff_s * 2, 8 * self.bus_params['reconnect_period_s'])
                 return False
-            self.connected = True
-            self.reconnects += 1
-            self.backoff_s = self.bus_params['reconnect_period_s']
-        for h in self.handles.values():
-            # After a (re)connect, report what the drive does; never resume a motion by itself.
-            self.log.info(f'{h.name}: connected ({", ".join(f"{k}={v}" for k, v in h.identity.items())});'
-                          f' state {h.state.state.value}, position {h.position:.6g}')
+            h.connected = True
+            h.reconnects += 1
+            h.backoff_s = self.bus_params['reconnect_period_s']
+        # After a (re)connect, report what the drive does; never resume a motion by itself.
+        self.log.info(f'{h.name}: connected ({", ".join(f"{k}={v}" for k, v in h.identity.items())});'
+                      f' state {h.state.state.value}, position {h.position:.6g}')
         return True
 
     # ------------------------------------------------------------------------------ poll loop
@@ -244,6 +249,8 @@ class DriveNode(Node):
             try:
                 self.poll()
             except Exception as e:  # noqa: BLE001 - the loop must survive anything
+                if not self.context.ok():   # SIGINT/SIGTERM shut the context down: we are done
+                    return
                 self.log.error(f'poll: {e!r}\n' + traceback.format_exc())
             next_t += self.poll_period_s
             delay = next_t - time.monotonic()
@@ -255,39 +262,39 @@ class DriveNode(Node):
     def poll(self) -> None:
         if self.shutting_down:
             return
-        now = time.monotonic()
-        if not self.connected:
-            if now >= self.next_connect and self.try_connect():
-                for h in self.handles.values():
-                    if h.param('auto_enable') and self.reconnects == 1:
+        for h in self.handles.values():
+            now = time.monotonic()
+            if not h.connected:
+                if now >= h.next_connect and self.try_connect(h):
+                    if h.param('auto_enable') and h.reconnects == 1:
                         self._auto_enable(h)
-        if self.connected:
-            for h in self.handles.values():
-                try:
-                    with self.bus_lock:
-                        if not self.connected:
-                            break
-                        h.state = h.drive.read_state()
-                        h.polls += 1
-                except LinkError as e:
-                    self._link_lost(str(e))
-                    break
-                except DriveError as e:
-                    self._note_error(h, f'read state: {e}')
-                    continue
-                except Exception as e:  # noqa: BLE001 - unknown trouble: treat as a link loss
-                    self.log.error(f'{h.name}: read_state: {e!r}\n' + traceback.format_exc())
-                    self._link_lost(f'unexpected error {e!r}')
-                    break
-                if h.velocity_deadline is not None and now > h.velocity_deadline:
-                    h.velocity_deadline = None
-                    self.log.warning(
-                        f'{h.name}: velocity watchdog: no velocity_command for '
-                        f"{self.bus_params['command_timeout_s']:g} s (command_timeout_s), stopping")
-                    self._safe(h, h.drive.stop)
+                continue
+            try:
+                with self.bus_lock:
+                    if not h.connected:
+                        continue
+                    h.state = h.drive.read_state()
+                    h.polls += 1
+            except LinkError as e:
+                self._drive_lost(h, str(e))
+                continue
+            except DriveError as e:
+                self._note_error(h, f'read state: {e}')
+                continue
+            except Exception as e:  # noqa: BLE001 - unknown trouble: treat as a link loss
+                self.log.error(f'{h.name}: read_state: {e!r}\n' + traceback.format_exc())
+                self._drive_lost(h, f'unexpected error {e!r}')
+                continue
+            if h.velocity_deadline is not None and now > h.velocity_deadline:
+                h.velocity_deadline = None
+                self.log.warning(
+                    f'{h.name}: velocity watchdog: no velocity_command for '
+                    f"{self.bus_params['command_timeout_s']:g} s (command_timeout_s), stopping")
+                self._safe(h, h.drive.stop)
         with self.changed:
             self.changed.notify_all()
-        self.publish_states()
+        if self.context.ok():
+            self.publish_states()
 
     def _auto_enable(self, h: DriveHandle) -> None:
         try:
@@ -344,7 +351,7 @@ class DriveNode(Node):
         m.position, m.velocity = h.position, h.velocity
         m.link_transactions = counters.get('transactions', 0) & 0xFFFFFFFF
         m.link_errors = counters.get('errors', 0) & 0xFFFFFFFF
-        m.link_reconnects = max(self.reconnects - 1, 0)
+        m.link_reconnects = max(h.reconnects - 1, 0)
         m.commands_refused, m.last_refusal = h.commands_refused, h.last_refusal
         return m
 
@@ -352,10 +359,17 @@ class DriveNode(Node):
         arr = DiagnosticArray()
         arr.header.stamp = self.get_clock().now().to_msg()
         link = DiagnosticStatus(name=f'{self.get_name()}: link', hardware_id=self.bus.description)
-        link.level = DiagnosticStatus.OK if self.connected else DiagnosticStatus.ERROR
-        link.message = 'connected' if self.connected else 'DISCONNECTED, reconnecting'
+        lost = [h.name for h in self.handles.values() if not h.connected]
+        if not lost:
+            link.level, link.message = DiagnosticStatus.OK, 'connected'
+        elif len(lost) < len(self.handles):
+            link.level = DiagnosticStatus.WARN
+            link.message = f'{", ".join(lost)} DISCONNECTED, reconnecting'
+        else:
+            link.level, link.message = DiagnosticStatus.ERROR, 'DISCONNECTED, reconnecting'
         link.values = [KeyValue(key=k, value=str(v)) for k, v in self.bus.counters().items()]
-        link.values.append(KeyValue(key='reconnects', value=str(max(self.reconnects - 1, 0))))
+        link.values.append(KeyValue(key='reconnects', value=str(
+            sum(max(h.reconnects - 1, 0) for h in self.handles.values()))))
         arr.status.append(link)
         for h in self.handles.values():
             s = h.state
@@ -383,10 +397,10 @@ class DriveNode(Node):
 
     # ------------------------------------------------------------------------------- commands
     def refuse(self, h: DriveHandle, why: str) -> None:
-        h.commands_refused += 1
         if why != h.last_refusal:     # log once per distinct reason, count every time
             self.log.warning(f'{h.name}: command refused: {why}')
-        h.last_refusal = why
+        h.last_refusal = why          # before the count: a status published in between is whole
+        h.commands_refused += 1
         raise CommandRefused(why)
 
     def _check_ready(self, h: DriveHandle, what: str) -> None:
@@ -470,7 +484,7 @@ class DriveNode(Node):
         with self.changed:
             while h.polls < target:
                 left = deadline - time.monotonic()
-                if left <= 0 or not self.connected:
+                if left <= 0 or not h.connected:
                     return False
                 self.changed.wait(left)
         return True
@@ -657,15 +671,13 @@ class DriveNode(Node):
         if self.poll_thread.is_alive():
             self.poll_thread.join(timeout=5.0)
         with self.bus_lock:
-            if self.connected:
-                for h in self.handles.values():
-                    try:
-                        h.drive.stop(quick=False)
-                        if h.param('disable_on_shutdown'):
-                            self._wait_standstill(h, SHUTDOWN_STOP_TIMEOUT_S)
-                            h.drive.disable()
-                    except Exception as e:  # noqa: BLE001 - go on with the other drives
-                        print(f'[{self.get_name()}] {h.name}: shutdown: {e}', flush=True)
+            live = [h for h in self.handles.values() if h.connected]
+            for h in live:              # every drive decelerates at once ...
+                self._shutdown_step(h, h.drive.stop)
+            for h in live:              # ... then each is disabled once it stands still
+                if h.param('disable_on_shutdown'):
+                    self._shutdown_step(h, self._wait_standstill, h, SHUTDOWN_STOP_TIMEOUT_S)
+                    self._shutdown_step(h, h.drive.disable)
             for h in self.handles.values():
                 try:
                     h.drive.close()
@@ -676,6 +688,13 @@ class DriveNode(Node):
             except Exception:  # noqa: BLE001
                 pass
 
+
+    def _shutdown_step(self, h: DriveHandle, fn: Callable, *args) -> None:
+        try:
+            fn(*args)
+        except Exception as e:  # noqa: BLE001 - go on with the other steps and drives
+            # the ROS context is gone by now: print, do not log through rclpy
+            print(f'[{self.get_name()}] {h.name}: shutdown: {fn.__name__}: {e}', flush=True)
 
     def _wait_standstill(self, h: DriveHandle, timeout_s: float) -> None:
         """Let the controlled stop finish before the power stage goes off (bounded)."""

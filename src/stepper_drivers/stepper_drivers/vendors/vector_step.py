@@ -1,0 +1,685 @@
+"""AEC Vector Step over CANopen (DS-301 V4.01 / DSP-402 V1.1): the drive class and the vendor.
+
+Objects, codes and texts come from `vector_step_map.py` (which cites the sections of the manual
+`aec_vector_step_canopen_it.txt`), the CiA 402 tables from `cia402.py`, the bus and node
+plumbing from `protocol/canopen_link.py`. Every boot (connect) of a node: SDO ping, NMT reset
+communication with the boot-up latch, identity, heartbeat producer 0x1017, the PDO set of
+DRIVER_RPDOS/DRIVER_TPDOS written with the manual's mapping procedure, values seeded by SDO, NMT
+start and a heartbeat that shows OPERATIONAL. After that the
+state comes from TxPDOs only, so `read_state()` costs no bus traffic; the heartbeat consumer and
+the boot-up latch turn a silent or rebooted node into a LinkError (the node layer reconnects).
+
+canopen's BaseNode402 is used for its PDO plumbing (tpdo_values), not for the parts that do not
+fit this drive (digest section 10): `op_mode` (its getter has no name for mode -1, its setter
+refuses mode 7 because 0x6502 lacks bit 6, and it waits for a "periodic" TxPDO that an
+event-driven TxPDO seen twice looks like), its `controlword` setter (it would send RxPDO1 with a
+stale mode byte 0), `homing()` (the AEC method numbers are not the library's, bit 10 during homing
+is not documented) and `reset_from_fault()` (the manual clears 0x1003 first). No rclpy.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from typing import Any, Mapping
+
+from .. import cia402
+from ..cia402 import CW_BIT_NEW_SET_POINT, CW_ENABLE_OPERATION
+from ..drive import (Bus, Drive, DriveError, DriveState, Homing, HomingState, LinkError, Motion,
+                     ParamSpec, State, Vendor, register_type)
+from ..protocol.canopen_link import BITRATES, CanBus, RemoteDrive, pack, unpack
+from . import vector_step_map as vm
+
+logger = logging.getLogger(__name__)
+
+CW_SW_DELAY_S = 0.002          # first statusword check after a controlword (TxPDO on change)
+ENABLE_TIMEOUT_S = 1.0
+DISABLE_TIMEOUT_S = 1.0
+FAULT_RESET_TIMEOUT_S = 0.4
+HANDSHAKE_TIMEOUT_S = 0.5
+MODE_SWITCH_TIMEOUT_S = 0.5
+SAVE_TIMEOUT_S = 5.0           # Rloadsav 0x81 (EEPROM write) must read 0 again within this
+SAVE_POLL_S = 0.02
+WARNING_READ_PERIOD_S = 1.0    # Rwarning is read by SDO at most this often while SW bit 7 is set
+PING_TIMEOUT_S = 0.2
+RESCUE_BOOT_WAIT_S = 0.5       # boot-up wait after a reset sent to a node that gave no SDO answer
+HOLD_CW = {                    # controlword that keeps each state (sent with a mode change)
+    State.SWITCH_ON_DISABLED: cia402.CW_DISABLE_VOLTAGE, State.READY_TO_SWITCH_ON:
+    cia402.CW_SHUTDOWN, State.SWITCHED_ON: cia402.CW_SWITCH_ON,
+    State.OPERATION_ENABLED: CW_ENABLE_OPERATION, State.QUICK_STOP_ACTIVE: cia402.CW_QUICK_STOP,
+}
+MODE_BITS = 0x0070             # controlword bits 4..6: mode specific
+INT32 = (-(1 << 31), (1 << 31) - 1)
+
+
+def parse_address(address: str) -> tuple[int, int]:
+    """'0x6041:0', '6041:00', '0x20C2' -> (index, sub); hex as CANopen writes them.
+
+    Without a sub-index: 1 for an AEC register (0x2000-0x5FFF: sub 0 is the number of axes),
+    0 otherwise.
+    """
+    text = address.strip().lower()
+    try:
+        if ':' in text:
+            index_text, sub_text = text.split(':', 1)
+            index, sub = int(index_text, 16), int(sub_text, 16)
+        else:
+            index = int(text, 16)
+            sub = vm.AEC_SUB if 0x2000 <= index <= 0x5FFF else 0
+    except ValueError:
+        raise DriveError(f'address {address!r}: expected "index:subindex" in hex, e.g. '
+                         '"0x6041:0" or "0x20C2:1"') from None
+    if not (0 <= index <= 0xFFFF and 0 <= sub <= 0xFF):
+        raise DriveError(f'address {address!r}: index 0..0xFFFF, sub-index 0..0xFF')
+    return index, sub
+
+
+class VectorStepDrive(Drive):
+    """One Vector Step on a CAN bus (node-ID = parameter `node_id`)."""
+
+    def __init__(self, bus: Bus, name: str, params: Mapping[str, Any]):
+        super().__init__(bus, name, params)
+        if not isinstance(bus, CanBus):
+            raise TypeError(f'{name}: Vector Step needs a CanBus, got {type(bus).__name__}')
+        self.can: CanBus = bus
+        self.node_id = int(params.get('node_id', 1))
+        bus.claim(self.node_id, name)
+        self.address = self.node_id
+        bitrate = int(params.get('can.bitrate', 125000))
+        if bitrate not in BITRATES:
+            raise ValueError(f'can.bitrate: {bitrate} is not a Vector Step bit rate (allowed: '
+                             f'{", ".join(str(b) for b in BITRATES)}; Rcanbaud codes 0..7)')
+        self.steps_per_rev = float(params.get('steps_per_rev', 3200.0))
+        method = int(params.get('homing.method', 35))
+        if method not in vm.HOMING_METHODS:
+            raise ValueError(f'drives.{name}.homing.method: {method} is not a Vector Step homing '
+                             f'method (allowed: {vm.HOMING_METHODS_TEXT}; see 0x6098)')
+        self.heartbeat_ms = int(params.get('heartbeat_period_ms', 100))
+        self.heartbeat_timeout_s = float(params.get('heartbeat_timeout_s', 1.0))
+        if self.heartbeat_ms and self.heartbeat_timeout_s * 1000.0 <= self.heartbeat_ms:
+            raise ValueError(f'drives.{name}.heartbeat_timeout_s: {self.heartbeat_timeout_s} '
+                             f'must exceed the heartbeat period ({self.heartbeat_ms} ms)')
+        self.event_timer_ms = int(params.get('tpdo_event_timer_ms', 100))
+        self.boot_timeout_s = float(params.get('boot_timeout_s', 2.0))
+        self.boot_retries = int(params.get('boot_retries', 3))
+        eds = str(params.get('can.eds_file') or '') or str(vm.eds_path())
+        self.link = RemoteDrive(bus, self.node_id, eds, name)
+        self.cia = cia402.Cia402Device(self._read_statusword, self._write_controlword,
+                                       min_delay_s=CW_SW_DELAY_S, name=name)
+        self.cia.POLL_S = 0.002
+        self._cw = 0                      # controlword last sent
+        self._extra: tuple[int | None, int | None] = (None, None)   # (mode, velocity) to send
+        self._mode_cmd: int | None = None  # 0x6060 last sent
+        self._target = 0                   # 0x607A sent with every RxPDO2
+        self._written: dict[tuple[int, int], int] = {}   # profile objects written this boot
+        self._bootups_at_connect = 0
+        self._connected_at = 0.0
+        self._homing = HomingState.IDLE
+        self._fault_cache: tuple[int, int, str, tuple[str, ...]] | None = None
+        self._warnings: tuple[float, tuple[str, ...]] = (0.0, ())
+
+    def _prefix(self) -> str:
+        return f'{self.name} (node {self.node_id}): '
+
+    # ------------------------------------------------------------------ controlword / PDO access
+    def _values(self) -> dict[int, Any]:
+        node = self.link.node
+        if node is None:
+            raise LinkError(f'{self._prefix()}not connected')
+        return node.tpdo_values
+
+    def _read_statusword(self) -> int:
+        self.can.check()
+        return int(self._values().get(vm.STATUSWORD, 0))
+
+    def _write_controlword(self, cw: int) -> None:
+        """Send the controlword by RxPDO: RxPDO1 with a mode, RxPDO3 with a JOG speed, else
+        RxPDO2 with the target position (the controlword is first in all three)."""
+        node = self.link.node
+        if node is None or not self.link.attached:
+            raise LinkError(f'{self._prefix()}not connected')
+        mode, velocity = self._extra
+        if mode is not None:
+            pdo = node.rpdo[1]
+            pdo[vm.MODES_OF_OPERATION].raw = mode
+            self._mode_cmd = mode
+        elif velocity is not None:
+            pdo = node.rpdo[3]
+            pdo[vm.PROFILE_VELOCITY].raw = velocity
+            self._written[(vm.PROFILE_VELOCITY, 0)] = velocity
+        else:
+            pdo = node.rpdo[2]
+            pdo[vm.TARGET_POSITION].raw = self._target
+        pdo[vm.CONTROLWORD].raw = cw
+        self._cw = cw
+        self.can.transactions += 1
+        self.can.send(pdo.cob_id, bytes(pdo.data))
+
+    def _command(self, cw: int, *, mode: int | None = None, velocity: int | None = None) -> None:
+        self._extra = (mode, velocity)
+        try:
+            self.cia.write(cw)
+        finally:
+            self._extra = (None, None)
+
+    def _barrier(self) -> int:
+        """Statusword by SDO: the drive answers after it has handled the PDOs sent before."""
+        return int(self.link.read(vm.STATUSWORD))
+
+    def _value(self, index: int, default: int = 0) -> int:
+        return int(self._values().get(index, default))
+
+    def _write_once(self, index: int, sub: int, value: int) -> None:
+        """SDO write of a profile object, skipped when this boot already wrote the value."""
+        if self._written.get((index, sub)) != value:
+            self.link.write(index, sub, value)
+            self._written[(index, sub)] = value
+
+    # ------------------------------------------------------------------ life cycle
+    def connect(self) -> dict[str, str]:
+        self.link.attach()
+        self.link.emcy = None
+        self._written.clear()
+        self._fault_cache = None
+        self._homing = HomingState.IDLE
+        try:
+            self._ping()
+            rebooted = False
+        except LinkError:
+            # A node in NMT STOPPED does not answer SDO (CiA 301), an NMT reset reaches it.
+            if not self.link.reset_and_wait_bootup(
+                    'RESET COMMUNICATION', min(self.boot_timeout_s, RESCUE_BOOT_WAIT_S)):
+                raise
+            rebooted = True
+        # A defined start: communication objects back to the manual's defaults, then boot-up.
+        if not rebooted and \
+                not self.link.reset_and_wait_bootup('RESET COMMUNICATION', self.boot_timeout_s):
+            self._ping()          # CiA 301 wants a boot-up here; go on if the node answers
+            logger.warning('%sno boot-up frame within %g s after NMT reset communication; the '
+                           'node answers SDO, continuing', self._prefix(), self.boot_timeout_s)
+        identity = self._identity()
+        self.link.write(vm.PRODUCER_HEARTBEAT_TIME, 0, self.heartbeat_ms)
+        self._configure_pdos()
+        self._seed()
+        self._bootups_at_connect = self.link.bootups
+        self._connected_at = time.monotonic()
+        self.link.nmt('OPERATIONAL')
+        if self.heartbeat_ms and not self.link.wait_heartbeat_state(
+                0x05, self._connected_at, self.heartbeat_timeout_s + self.heartbeat_ms / 1000.0):
+            raise LinkError(f'{self._prefix()}no heartbeat showing OPERATIONAL after NMT start '
+                            f'(producer {self.heartbeat_ms} ms)')
+        state = cia402.decode_state(self._read_statusword())
+        self._cw = HOLD_CW.get(state, cia402.CW_DISABLE_VOLTAGE)
+        self.cia.controlword = self._cw
+        self._mode_cmd = self._value(vm.MODES_OF_OPERATION_DISPLAY)
+        self._target = self._value(vm.POSITION_ACTUAL_VALUE)
+        if state == State.OPERATION_ENABLED and \
+                self._read_statusword() & vm.SW_BIT_MOTOR_MOVING:
+            logger.warning('%sstill moving after (re)connecting: stopping it', self._prefix())
+            self.stop()
+        return identity
+
+    def _ping(self) -> None:
+        """SDO read of 0x1000 with retries: a missing node fails fast, before any NMT."""
+        last: LinkError | None = None
+        timeout, self.link.node.sdo.RESPONSE_TIMEOUT = self.link.node.sdo.RESPONSE_TIMEOUT, \
+            min(PING_TIMEOUT_S, self.can.timeout_s)
+        try:
+            for _ in range(max(self.boot_retries, 1)):
+                try:
+                    self.link.read(vm.DEVICE_TYPE)
+                    return
+                except LinkError as exc:
+                    last = exc
+        finally:
+            self.link.node.sdo.RESPONSE_TIMEOUT = timeout
+        raise LinkError(f'{self._prefix()}no answer on {self.can.description} after '
+                        f'{self.boot_retries} tries ({last})')
+
+    def _identity(self) -> dict[str, str]:
+        device_type = int(self.link.read(vm.DEVICE_TYPE))
+        if device_type & 0xFFFF != vm.DEVICE_PROFILE_DS402:
+            raise DriveError(f'{self._prefix()}device type 0x{device_type:08X} is not a DSP-402 '
+                             'drive (expected 0x00040192)')
+        vendor = int(self.link.read(vm.IDENTITY_OBJECT, 1))
+        if vendor != vm.VENDOR_ID_AEC:
+            logger.warning('%svendor ID 0x%08X is not AEC (0x000000BC)', self._prefix(), vendor)
+        product = int(self.link.read(vm.IDENTITY_OBJECT, 2))
+        identity = {
+            'node_id': str(self.node_id),
+            'device_name': str(self.link.read(vm.MANUFACTURER_DEVICE_NAME)).strip('\0 '),
+            'software': str(self.link.read(vm.MANUFACTURER_SOFTWARE_VERSION)).strip('\0 '),
+            'vendor_id': f'0x{vendor:08X}',
+            'product_code': f'0x{product:08X} ({vm.PRODUCT_CODES.get(product, "unknown")})',
+            'revision': f'0x{int(self.link.read(vm.IDENTITY_OBJECT, 3)):08X}',
+            'serial': str(self.link.read(vm.IDENTITY_OBJECT, 4)),
+            'Rstpres': str(self.link.read(vm.RSTPRES, vm.AEC_SUB)),
+            'heartbeat_ms': str(self.heartbeat_ms),
+        }
+        return identity
+
+    def _configure_pdos(self) -> None:
+        for number, entries in enumerate(vm.DRIVER_RPDOS, 1):
+            self.link.configure_pdo('rx', number, entries)
+        self.link.configure_pdo('rx', 4, ())
+        for number, entries in enumerate(vm.DRIVER_TPDOS, 1):
+            timer = self.event_timer_ms if number == 2 else None
+            self.link.configure_pdo('tx', number, entries, 0xFE, event_timer_ms=timer or 0,
+                                    inhibit_time_100us=0)
+        self.link.node.setup_pdos(upload=False)
+        self.link.watch_tpdos()
+
+    def _seed(self) -> None:
+        """Current values by SDO, so the cache is right before the first TxPDO arrives."""
+        values = self._values()
+        for index, sub, _bits in {e for pdo in vm.DRIVER_TPDOS for e in pdo}:
+            values[index] = self.link.read(index, sub)
+
+    def close(self) -> None:
+        self._homing = HomingState.IDLE
+
+    # ------------------------------------------------------------------ state
+    def _check_alive(self) -> None:
+        if not self.link.attached:
+            raise LinkError(f'{self._prefix()}not connected')
+        self.can.check()
+        if self.link.bootups > self._bootups_at_connect:
+            raise LinkError(f'{self._prefix()}boot-up seen: the drive restarted; reconnecting '
+                            'to configure it again')
+        if not self.heartbeat_ms:
+            return
+        age = self.link.heartbeat_age_s()
+        if age is None:
+            age = time.monotonic() - self._connected_at
+        if age > self.heartbeat_timeout_s:
+            raise LinkError(f'{self._prefix()}heartbeat lost: nothing for {age:.2f} s (producer '
+                            f'{self.heartbeat_ms} ms, heartbeat_timeout_s '
+                            f'{self.heartbeat_timeout_s:g})')
+        nmt = self.link.heartbeat_state
+        if nmt is not None and nmt != 0x05:
+            raise LinkError(f'{self._prefix()}heartbeat reports NMT state 0x{nmt:02X}, not '
+                            'OPERATIONAL: reconnecting')
+
+    def read_state(self) -> DriveState:
+        self._check_alive()
+        values = self._values()
+        sw = int(values.get(vm.STATUSWORD, 0))
+        mode = int(values.get(vm.MODES_OF_OPERATION_DISPLAY, 0))
+        rstsflg = int(values.get(vm.RSTSFLG, 0))
+        state = cia402.decode_state(sw)
+        fault = state in (State.FAULT, State.FAULT_REACTION_ACTIVE)
+        code, text, alarms = (self._fault(state) if fault else (0, '', ()))
+        if not fault:
+            self._fault_cache = None
+        homing = self._homing_state(sw, mode)
+        extra: list[str] = list(alarms)
+        if sw & cia402.SW_BIT_WARNING:
+            extra += self._read_warnings()
+        emcy = self.link.emcy
+        if homing == HomingState.ERROR and emcy is not None and emcy.code in vm.HOME_ERROR_CODES:
+            extra.append(f'EMCY 0x{emcy.code:04X}: {emcy.text}')
+        if int(values.get(vm.ERROR_REGISTER, 0)) & vm.ERROR_REGISTER_COMMUNICATION and \
+                emcy is not None and 0x8100 <= emcy.code <= 0x82FF:
+            extra.append(f'EMCY 0x{emcy.code:04X}: {emcy.text}')
+        return DriveState(
+            state=state, enabled=state == State.OPERATION_ENABLED,
+            moving=bool(sw & vm.SW_BIT_MOTOR_MOVING),
+            target_reached=bool(sw & cia402.SW_BIT_TARGET_REACHED),
+            homed=bool(rstsflg & vm.RSTSFLG_HOMED), homing=homing, fault=fault,
+            fault_code=code, fault_text=text, alarms=tuple(extra),
+            mode=vm.MODE_NAMES.get(mode, f'mode {mode}'), status_word=sw,
+            position_steps=int(values.get(vm.POSITION_ACTUAL_VALUE, 0)),
+            velocity_steps_s=vm.hz_from_rps100(int(values.get(vm.VELOCITY_ACTUAL_VALUE, 0)),
+                                               self.steps_per_rev))
+
+    def _homing_state(self, sw: int, mode: int) -> HomingState:
+        """AEC homing bits: 12 "Home eseguito", 13 "Errore in azzeramento" ([STATUSWORD]).
+
+        Unlike the CiA table, attained does not wait for bit 10: the manual ties no meaning to
+        bit 10 during homing.
+        """
+        if self._homing != HomingState.RUNNING:
+            return self._homing
+        if mode == vm.MODE_HOMING:
+            if sw & vm.SW_BIT_HOMING_ERROR:
+                self._homing = HomingState.ERROR
+            elif sw & vm.SW_BIT_HOMING_ATTAINED:
+                self._homing = HomingState.ATTAINED
+            elif not sw & vm.SW_BIT_MOTOR_MOVING and sw & cia402.SW_BIT_TARGET_REACHED and \
+                    not self._cw & CW_BIT_NEW_SET_POINT:
+                self._homing = HomingState.IDLE       # interrupted
+        elif cia402.decode_state(sw) != State.OPERATION_ENABLED:
+            self._homing = HomingState.IDLE
+        return self._homing
+
+    def _fault(self, state: State) -> tuple[int, str, tuple[str, ...]]:
+        """(code, text, alarms) of the current fault; SDO reads once per fault (and EMCY)."""
+        count = self.link.emcy_count
+        if self._fault_cache is not None and self._fault_cache[0] == count:
+            return self._fault_cache[1:]
+        emcy = self.link.emcy
+        if emcy is not None and emcy.time_s >= self._connected_at:
+            code, text = emcy.code, emcy.text
+        else:
+            code = int(self.link.read(vm.ERROR_CODE))
+            text = vm.emcy_text(code)
+        alarms: tuple[str, ...] = ()
+        ralarm = 0
+        for index in (vm.RALARM32, vm.RALARM):   # the 32-bit register, else the 16-bit one
+            try:
+                ralarm = int(self.link.read(index, vm.AEC_SUB))
+                break
+            except LinkError:
+                raise
+            except DriveError:
+                continue
+        if ralarm:
+            alarms = tuple(vm.RALARM_BITS.get(b, f'alarm bit {b}') for b in range(32)
+                           if ralarm & (1 << b))
+            text = f'{text}: {", ".join(alarms)} (Ralarm32 0x{ralarm:08X})'
+        self._fault_cache = (count, code, text, alarms)
+        return code, text, alarms
+
+    def _read_warnings(self) -> tuple[str, ...]:
+        at, texts = self._warnings
+        if time.monotonic() - at >= WARNING_READ_PERIOD_S:
+            try:
+                value = int(self.link.read(vm.RWARNING, vm.AEC_SUB))
+                texts = tuple(f'warning: {vm.RWARNING_BITS.get(b, f"bit {b}")}'
+                              for b in range(16) if value & (1 << b))
+            except DriveError:
+                texts = ('warning (statusword bit 7)',)
+            self._warnings = (time.monotonic(), texts)
+        return texts
+
+    # ------------------------------------------------------------------ power stage
+    def enable(self) -> None:
+        sw = self._read_statusword()
+        state = cia402.decode_state(sw)
+        if state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
+            code, text, _ = self._fault(state)
+            raise DriveError(f'{self._prefix()}in FAULT 0x{code:04X} ({text}); call fault_reset '
+                             'first')
+        if state == State.OPERATION_ENABLED:
+            return
+        self._target = self._value(vm.POSITION_ACTUAL_VALUE)     # nothing moves on enable
+        self._homing = HomingState.IDLE
+        base = HOLD_CW.get(state, cia402.CW_DISABLE_VOLTAGE)
+        if self._mode_cmd != vm.MODE_PROFILE_POSITION or \
+                self._value(vm.MODES_OF_OPERATION_DISPLAY) != vm.MODE_PROFILE_POSITION:
+            self._command(base, mode=vm.MODE_PROFILE_POSITION)
+        try:
+            self.cia.bring_to(State.OPERATION_ENABLED, ENABLE_TIMEOUT_S)
+        except DriveError as exc:
+            raise DriveError(f'cannot enable: {exc}{self._why_not_enabled()}') from None
+
+    def _why_not_enabled(self) -> str:
+        """The manual's registers that explain a power stage that does not come on."""
+        reasons = []
+        try:
+            sts1 = int(self.link.read(vm.RSTSFLG1, vm.AEC_SUB))
+            if sts1 & vm.RSTSFLG1_STO:
+                reasons.append('STO active (Rstsflg1 bit 15)')
+            if sts1 & vm.RSTSFLG1_POWER_OFF:
+                reasons.append('Power_OFF signal (Rstsflg1 bit 2)')
+            ralarm = int(self.link.read(vm.RALARM32, vm.AEC_SUB))
+            if ralarm:
+                reasons.append(f'alarms {vm.bit_texts(ralarm, vm.RALARM_BITS)} '
+                               f'(Ralarm32 0x{ralarm:08X})')
+        except DriveError as exc:
+            reasons.append(f'({exc})')
+        if not self._read_statusword() & cia402.SW_BIT_VOLTAGE_ENABLED:
+            reasons.append('statusword bit 4 shows no power stage voltage')
+        if not reasons:
+            return ''
+        return '; the power stage is blocked: ' + '; '.join(reasons) + \
+            ' (check the motor supply and the STO inputs)'
+
+    def disable(self) -> None:
+        state = cia402.decode_state(self._read_statusword())
+        self._homing = HomingState.IDLE
+        if state in (State.SWITCH_ON_DISABLED, State.FAULT, State.FAULT_REACTION_ACTIVE,
+                     State.NOT_READY_TO_SWITCH_ON):
+            return
+        self.cia.bring_to(State.SWITCH_ON_DISABLED, DISABLE_TIMEOUT_S)
+
+    def _require_enabled(self, what: str) -> None:
+        sw = self._read_statusword()
+        state = cia402.decode_state(sw)
+        if state != State.OPERATION_ENABLED:
+            raise DriveError(f'{what}: the drive is not enabled ({cia402.describe(sw)}); call '
+                             'enable first')
+
+    def _ensure_mode(self, mode: int) -> None:
+        """0x6060 by RxPDO1 (with the controlword that holds OPERATION ENABLED, bits 4-6 low),
+        then wait until 0x6061 (TxPDO1) shows it."""
+        if self._mode_cmd == mode and self._value(vm.MODES_OF_OPERATION_DISPLAY) == mode:
+            return
+        self._command(CW_ENABLE_OPERATION, mode=mode)
+        ok = self.link.wait(lambda: self._value(vm.MODES_OF_OPERATION_DISPLAY) == mode,
+                            MODE_SWITCH_TIMEOUT_S)
+        if not ok:                           # no TxPDO1 on the change: ask once by SDO
+            display = int(self.link.read(vm.MODES_OF_OPERATION_DISPLAY))
+            self._values()[vm.MODES_OF_OPERATION_DISPLAY] = display
+            ok = display == mode
+        if not ok:
+            raise DriveError(f'{self._prefix()}modes of operation display 0x6061 shows '
+                             f'{self._value(vm.MODES_OF_OPERATION_DISPLAY)} after writing 0x6060 '
+                             f'= {mode} ({vm.MODE_NAMES[mode]})')
+
+    # ------------------------------------------------------------------ motion
+    def _rps100(self, velocity_steps_s: float, what: str) -> int:
+        value = vm.rps100_from_hz(abs(velocity_steps_s), self.steps_per_rev)
+        if velocity_steps_s and value == 0:
+            raise DriveError(f'{what} {velocity_steps_s:.4g} steps/s is below the drive\'s '
+                             f'resolution of 0.01 rev/s ({self.steps_per_rev / 100.0:g} steps/s)')
+        return value
+
+    def _rps2x10(self, acceleration: float) -> int:
+        return max(vm.rps2x10_from_hz_s(acceleration, self.steps_per_rev), 1)   # min 1 (0x6083)
+
+    def move_to(self, target_steps: int, motion: Motion) -> None:
+        self._require_enabled('move')
+        if not INT32[0] <= target_steps <= INT32[1]:
+            raise DriveError(f'target {target_steps} steps is outside 0x607A (INTEGER32)')
+        velocity = self._rps100(motion.velocity_steps_s, 'profile velocity')
+        if velocity == 0:
+            raise DriveError('profile velocity is 0: the move would not run')
+        self._ensure_mode(vm.MODE_PROFILE_POSITION)
+        self._homing = HomingState.IDLE
+        self._write_once(vm.PROFILE_VELOCITY, 0, velocity)
+        self._write_once(vm.PROFILE_ACCELERATION, 0, self._rps2x10(motion.acceleration_steps_s2))
+        self._write_once(vm.PROFILE_DECELERATION, 0, self._rps2x10(motion.deceleration_steps_s2))
+        self._target = int(target_steps)
+        # New set-point, change set immediately (bit 5), absolute (bit 6 = 0): the handshake of
+        # CiA 402 on bits 4 / 12 [CONTROLWORD], [STATUSWORD].
+        self.cia.start_set_point(CW_ENABLE_OPERATION, relative=False, immediate=True,
+                                 timeout_s=HANDSHAKE_TIMEOUT_S)
+
+    def set_velocity(self, velocity_steps_s: float, motion: Motion) -> None:
+        self._require_enabled('velocity')
+        units = self._rps100(velocity_steps_s, 'velocity')
+        jog = self._mode_cmd == vm.MODE_JOG and \
+            self._value(vm.MODES_OF_OPERATION_DISPLAY) == vm.MODE_JOG
+        if units == 0:
+            if jog:
+                self._write_once(vm.PROFILE_DECELERATION, 0,
+                                 self._rps2x10(motion.deceleration_steps_s2))
+                self._command(CW_ENABLE_OPERATION)           # bit 4 = 0: "0 = Stop"
+            else:
+                self.stop()
+            return
+        self._ensure_mode(vm.MODE_JOG)
+        self._homing = HomingState.IDLE
+        self._write_once(vm.PROFILE_ACCELERATION, 0, self._rps2x10(motion.acceleration_steps_s2))
+        self._write_once(vm.PROFILE_DECELERATION, 0, self._rps2x10(motion.deceleration_steps_s2))
+        cw = CW_ENABLE_OPERATION | vm.CW_BIT_JOG_START | vm.CW_BIT_JOG_SPEED_CONTINUOUS
+        if velocity_steps_s < 0:
+            cw |= vm.CW_BIT_JOG_CCW                 # CCW = negative counting (assumption)
+        sw = self._read_statusword()
+        if self._cw & vm.CW_BIT_JOG_START and sw & vm.SW_BIT_JOG_STOPPED and \
+                not sw & vm.SW_BIT_MOTOR_MOVING:
+            # Stopped by the drive (limit switch, STOP, mode change) with bit 4 still high:
+            # a low level first, so that "1 = Start" starts again.
+            self._command(CW_ENABLE_OPERATION)
+        self._command(cw, velocity=units)
+
+    def stop(self, quick: bool = False) -> None:
+        sw = self._read_statusword()
+        if cia402.decode_state(sw) != State.OPERATION_ENABLED:
+            return
+        mode = self._value(vm.MODES_OF_OPERATION_DISPLAY)
+        if mode == vm.MODE_JOG and not quick:
+            self._command(CW_ENABLE_OPERATION)       # JOG: bit 4 = 0 is the stop, on 0x6084
+        else:
+            # No halt bit (CW bit 8 is reserved): the AEC command register, one bit per write.
+            self.link.write(vm.RCMDWR, vm.AEC_SUB, vm.RCMDWR_ABORT if quick else vm.RCMDWR_STOP)
+            if self._cw & MODE_BITS:
+                self._command(CW_ENABLE_OPERATION)
+        if self._homing == HomingState.RUNNING:
+            self._homing = HomingState.IDLE
+
+    def start_homing(self, homing: Homing) -> str:
+        method = int(homing.method)
+        if method not in vm.HOMING_METHODS:
+            raise DriveError(f'homing method {method} is not a Vector Step method '
+                             f'({vm.HOMING_METHODS_TEXT})')
+        self._require_enabled('home')
+        search = self._rps100(homing.speed_search_steps_s, 'homing search speed')
+        zero = self._rps100(homing.speed_zero_steps_s, 'homing zero speed')
+        if method not in (0, 35, 37) and not (search and zero):
+            raise DriveError(f'homing method {method} needs search and zero speeds > 0')
+        if not INT32[0] <= homing.offset_steps <= INT32[1]:
+            raise DriveError(f'homing offset {homing.offset_steps} is outside 0x607C (INTEGER32)')
+        self._ensure_mode(vm.MODE_HOMING)
+        self.link.write(vm.HOMING_METHOD, 0, method)          # raw AEC number, not the library's
+        self._write_once(vm.HOMING_SPEEDS, 1, search)
+        self._write_once(vm.HOMING_SPEEDS, 2, zero)
+        self._write_once(vm.HOMING_ACCELERATION, 0, self._rps2x10(homing.acceleration_steps_s2))
+        self.link.write(vm.HOME_OFFSET, 0, int(homing.offset_steps))  # position forced after
+        if self._cw & CW_BIT_NEW_SET_POINT:
+            self._command(CW_ENABLE_OPERATION)
+        if self.link.emcy is not None and self.link.emcy.code in vm.HOME_ERROR_CODES:
+            self.link.emcy = None
+        self._command(CW_ENABLE_OPERATION | vm.CW_BIT_HOMING_START)   # rising edge starts
+        self._homing = HomingState.RUNNING
+        self._barrier()
+        note = f'method {method}: {vm.HOMING_METHODS[method]}'
+        if homing.offset_steps:
+            note += f'; position after homing {homing.offset_steps} steps (0x607C)'
+        return note
+
+    # ------------------------------------------------------------------ maintenance
+    def fault_reset(self) -> str:
+        """The manual's procedure [SEGNALAZIONE DI ERRORE]: (1) the cause is gone, (2) 0x1003:00
+        = 0, (3) back to operation enable, which starts with transition 15 (bit 7 rising edge)."""
+        sw = self._read_statusword()
+        state = cia402.decode_state(sw)
+        if state not in (State.FAULT, State.FAULT_REACTION_ACTIVE):
+            self.link.write(vm.PRE_DEFINED_ERROR_FIELD, 0, 0)
+            self.link.emcy = None
+            return ''
+        code, text, _ = self._fault(state)
+        for attempt in range(2):
+            if attempt:
+                # "Per resettare gli allarmi scrivere 0 in questo registro" (Ralarm32).
+                self.link.write(vm.RALARM32, vm.AEC_SUB, 0)
+            self.link.write(vm.PRE_DEFINED_ERROR_FIELD, 0, 0)
+            sw = self.cia.fault_reset(FAULT_RESET_TIMEOUT_S)
+            if cia402.decode_state(sw) not in (State.FAULT, State.FAULT_REACTION_ACTIVE):
+                self.link.emcy = None
+                self._fault_cache = None
+                self._homing = HomingState.IDLE
+                logger.info('%sfault 0x%04X cleared: %s', self._prefix(), code,
+                            cia402.describe(sw))
+                return ''
+        self._fault_cache = None
+        code, text, _ = self._fault(cia402.decode_state(sw))
+        return (f'0x{code:04X} {text}: still in {cia402.describe(sw)} after 0x1003:00 = 0 and '
+                f'the controlword bit 7 edge; remove the cause first')
+
+    def save_params(self) -> str:
+        start = time.monotonic()
+        self.link.write(vm.RLOADSAV, vm.AEC_SUB, vm.RLOADSAV_SAVE_REGISTERS)
+        while True:
+            value = int(self.link.read(vm.RLOADSAV, vm.AEC_SUB))
+            if value == 0:                  # "Il registro viene azzerato quando il comando e'
+                break                       # stato eseguito"
+            if time.monotonic() - start > SAVE_TIMEOUT_S:
+                raise DriveError(f'save: Rloadsav 0x20C2:01 still reads 0x{value:02X} after '
+                                 f'{SAVE_TIMEOUT_S:g} s')
+            time.sleep(SAVE_POLL_S)        # poll rate of a register that has no event
+        elapsed = time.monotonic() - start
+        reepsts = int(self.link.read(vm.REEPSTS, vm.AEC_SUB))
+        if reepsts:
+            raise DriveError(f'save failed: Reepsts 0x{reepsts:04X} '
+                             f'({vm.bit_texts(reepsts, vm.REEPSTS_BITS)})')
+        return (f'Rloadsav 0x81 (save registers to EEPROM) done in {elapsed:.2f} s, Reepsts 0; '
+                'PDO mapping and heartbeat are not stored (written at every boot)')
+
+    def read_register(self, address: str, data_type: str) -> int | str:
+        index, sub = parse_address(address)
+        data = self.link.upload(index, sub)
+        if data_type.lower() == 'string':
+            return data.split(b'\0', 1)[0].decode('latin-1')
+        rtype = register_type(data_type)
+        if len(data) != rtype.bits // 8:
+            raise DriveError(f'0x{index:04X}:{sub:02X} answered {len(data)} byte(s); '
+                             f'{rtype.name} is {rtype.bits // 8}')
+        return unpack(rtype.name, data)
+
+    def write_register(self, address: str, data_type: str, value: int | str) -> None:
+        index, sub = parse_address(address)
+        if data_type.lower() == 'string':
+            data = str(value).encode('latin-1')
+        else:
+            rtype = register_type(data_type)
+            data = pack(rtype.name, rtype.check(int(value)))
+        self.link.download(index, sub, data)
+        self._written.pop((index, sub), None)
+
+
+# ---------------------------------------------------------------------------- vendor
+PARAMS = (
+    ParamSpec('can.interface', 'socketcand',
+              "python-can interface: 'socketcand' (the loopback broker of the tests and the "
+              "demo), 'socketcan' for a Linux CAN card, or any other python-can interface",
+              scope='bus'),
+    ParamSpec('can.channel', 'can0', "CAN channel ('can0')", scope='bus'),
+    ParamSpec('can.bitrate', 125000, 'bit rate [bit/s]: 10k, 20k, 50k, 125k, 250k, 500k, 800k, '
+              '1M (Rcanbaud 0..7; 125k with the rotary switches at 00); socketcand ignores it',
+              scope='bus', min_value=10000, max_value=1000000),
+    ParamSpec('can.host', '127.0.0.1', 'socketcand server host', scope='bus'),
+    ParamSpec('can.port', 29536, 'socketcand server port', scope='bus', min_value=1,
+              max_value=65535),
+    ParamSpec('can.eds_file', '', "EDS of the drives ('' = config/vector_step.eds of the package)",
+              scope='bus'),
+    ParamSpec('node_id', 1, 'CANopen node-ID (rotary switches + Rcanaddr; 125 with switches 00)',
+              min_value=1, max_value=127),
+    ParamSpec('heartbeat_period_ms', 100, 'producer heartbeat time 0x1017 written at every boot '
+              '[ms]; 0 = none (then no heartbeat-loss detection)', min_value=0,
+              max_value=65535),
+    ParamSpec('heartbeat_timeout_s', 1.0, 'no heartbeat for this long: link lost, reconnect [s]',
+              min_value=0.01, max_value=60.0),
+    ParamSpec('tpdo_event_timer_ms', 100, 'event timer of TxPDO2 (statusword + position): sent '
+              'at least this often besides on change [ms]; 0 = on change only', min_value=0,
+              max_value=65535),
+    ParamSpec('boot_timeout_s', 2.0, 'wait for the boot-up after NMT reset communication [s]',
+              min_value=0.05, max_value=60.0),
+    ParamSpec('boot_retries', 3, 'SDO pings before a connect attempt gives up', min_value=1,
+              max_value=100),
+)
+
+
+def make_bus(params: Mapping[str, Any]) -> CanBus:
+    return CanBus(interface=str(params['can.interface']), channel=str(params['can.channel']),
+                  bitrate=int(params['can.bitrate']), host=str(params['can.host']),
+                  port=int(params['can.port']), timeout_s=float(params['timeout_s']))
+
+
+def make_drive(bus: Bus, name: str, params: Mapping[str, Any]) -> VectorStepDrive:
+    return VectorStepDrive(bus, name, params)
+
+
+VENDOR = Vendor(name='AEC Vector Step', params=PARAMS, make_bus=make_bus, make_drive=make_drive,
+                drive_defaults={'steps_per_rev': 3200.0, 'homing.method': 35})

@@ -1,0 +1,341 @@
+"""XmindKDrive against xmind_k_sim over a real pty, in one process (no ROS).
+
+The simulator's tap records every host string, so the tests check the driver's strings on the
+wire: a move, a free run, a velocity change, a stop and a homing, and that a thousand position
+commands write no EEPROM cell.
+"""
+
+import math
+import time
+
+import pytest
+from stepper_drivers.drive import (DriveError, Homing, HomingState, LinkError, Motion,
+                                   RefusedError, State)
+from stepper_drivers.vendors import xmind_k as v
+from stepper_sim.xmind_k_sim import build_line
+
+BUS = {'baudrate': 9600, 'parity': 'N', 'stopbits': 1, 'timeout_s': 0.1, 'retries': 1,
+       'local_echo': False}
+DRIVE = {'resolution': '', 'current_preset': -1, 'answer_delay_ms': -1, 'equalization': -1,
+         'power_cycle_flag': 'F7', 'busy_poll_period_s': 0.02, 'status_poll_period_s': 0.2,
+         'steps_per_rev': 2000.0, 'homing.method': 3}
+FAST = Motion(10000.0, 200000.0, 200000.0)       # 31,100,30: 10 kHz, ramp code 30
+
+
+def wait_until(cond, timeout_s=10.0, what='condition'):
+    deadline = time.monotonic() + timeout_s
+    while not (value := cond()):
+        assert time.monotonic() < deadline, f'timed out waiting for {what}'
+        time.sleep(0.002)      # poll period of this wait; the driver polls the drive itself
+    return value
+
+
+class Rig:
+    def __init__(self, tmp_path, sims=None, **drive_params):
+        self.tmp_path = tmp_path
+        self.wire: list[str] = []
+        self.line = build_line({'port': str(tmp_path / 'tty')},
+                               sims or {'a1': {'address': 1, 'px_edge_steps': 3000.0},
+                                        'a2': {'address': 2}})
+        self.line.tap = self._tap
+        self.line.start()
+        self.bus = v.make_bus({**BUS, 'port': self.line.link_path})
+        self.bus.line.margin_s = 0.0     # a pty needs no §3 margin: keeps the test fast
+        self.drives = {name: v.make_drive(self.bus, name, {**BUS, **DRIVE, **drive_params,
+                                                           'address': d.address})
+                       for name, d in self.line.by_name.items()}
+        self.bus.open()
+        for d in self.drives.values():
+            d.connect()
+        self.wire.clear()
+
+    def _tap(self, direction, data, _t):
+        if direction == 'rx':
+            self.wire.append(data.decode('ascii', errors='replace').rstrip('\r'))
+
+    def sim(self, name='a1'):
+        return self.line.by_name[name]
+
+    def true(self, name='a1'):
+        with self.line.lock:
+            return self.sim(name).true_position_steps()
+
+    def settle(self, drive):
+        return wait_until(lambda: (s := drive.read_state()) and not s.moving and s, 20.0,
+                          f'{drive.name} at rest')
+
+    def close(self):
+        self.bus.close()
+        self.line.stop()
+
+
+@pytest.fixture
+def rig(tmp_path):
+    r = Rig(tmp_path)
+    yield r
+    r.close()
+
+
+def strings(rig, prefix='01'):
+    """Host strings other than position and status polls (QA, QO)."""
+    return [s for s in rig.wire if s.startswith(prefix) and s[2:4] not in ('QA', 'QO')]
+
+
+def test_connect_writes_presets_only_when_they_differ(tmp_path):
+    sims = {'a1': {'address': 1}}
+    r = Rig(tmp_path, sims, answer_delay_ms=0)
+    try:
+        assert r.sim().presets['RD'] == 0 and r.sim().eeprom_preset_writes == 1
+        again = v.make_drive(r.bus, 'a1', {**BUS, **DRIVE, 'answer_delay_ms': 0, 'address': 1})
+        identity = again.connect()
+        assert r.sim().eeprom_preset_writes == 1, 'equal presets are not written again'
+        assert identity['RD'] == '0' and identity['RS'] == 'D2' and identity['CM'] == '0'
+        assert not [s for s in r.wire if s[2:4] == 'WS']
+        with r.line.lock:
+            r.sim().presets['CM'] = 1                    # someone set absolute mode
+        again.connect()
+        assert '01WS,CM,0' in r.wire                     # this driver needs relative (§5.1)
+    finally:
+        r.close()
+
+
+def test_move_strings_estimate_and_correction(rig):
+    d = rig.drives['a1']
+    d.enable()
+    d.move_to(20000, FAST)
+    assert strings(rig) == ['01CY', '01WN,228,31,100,30,+20000,x1,000', '01PS,228']
+    time.sleep(1.0)        # half way through the 2.05 s move: the drive cannot be asked
+    s = d.read_state()
+    assert s.moving and s.position_estimated and not s.velocity_valid
+    assert s.velocity_steps_s == pytest.approx(10000)
+    assert s.position_steps == pytest.approx(rig.true(), abs=300)
+    assert s.mode == 'HIGH RESOLUTION INDEXED RUN WITH RAMP'
+    s = rig.settle(d)
+    assert s.position_steps == 20000 and not s.position_estimated and s.target_reached
+    assert rig.true() == 20000
+    # slower than 3000 Hz: an unramped run on the Table 4 grid (§4.1.6)
+    rig.wire.clear()
+    d.move_to(19990, Motion(1234.0, 200000.0, 200000.0))
+    assert strings(rig) == ['01WN,228,21,1200,-10,x1,000', '01PS,228']
+    assert rig.settle(d).position_steps == 19990
+    d.move_to(19990, FAST)                                # already there: nothing to send
+    assert strings(rig) == ['01WN,228,21,1200,-10,x1,000', '01PS,228']
+
+
+def test_free_run_velocity_change_and_stop_strings(rig):
+    d = rig.drives['a1']
+    d.enable()
+    rig.wire.clear()
+    d.set_velocity(5000.0, FAST)
+    assert strings(rig) == ['01WN,229,32,050,30,+,x1,000', '01PS,229']
+    d.set_velocity(5000.0, FAST)                          # the same run: nothing on the wire
+    d.read_state()
+    assert strings(rig) == ['01WN,229,32,050,30,+,x1,000', '01PS,229']
+    time.sleep(0.2)
+    d.set_velocity(-2500.0, FAST)            # stop, wait until it answers, rewrite, restart
+    assert strings(rig)[-1] == '01ES'
+    wait_until(lambda: d.read_state().velocity_steps_s < 0, 5.0, 'running backwards')
+    assert strings(rig)[-3:] == ['01ES', '01WN,229,22,2500,-,x1,000', '01PS,229']
+    p = rig.true()
+    wait_until(lambda: rig.true() < p - 100, 5.0, 'moving backwards')
+    d.stop()
+    assert strings(rig)[-1] == '01ES'                     # ES stops free runs (§4.2.7)
+    s = rig.settle(d)
+    assert s.position_steps == round(rig.true()) and s.state == State.OPERATION_ENABLED
+
+
+def test_stop_of_an_indexed_run_is_ee(rig):
+    d = rig.drives['a1']
+    d.enable()
+    d.move_to(100000, FAST)
+    time.sleep(0.3)
+    d.stop()
+    assert strings(rig)[-1] == '01EE'          # ES would not stop an indexed run (§4.2.7)
+    s = rig.settle(d)
+    assert 1000 < s.position_steps < 100000 and s.position_steps == round(rig.true())
+    d.stop(quick=True)                          # at rest: nothing to send
+    assert strings(rig)[-1] == '01EE'
+
+
+def test_homing_strings_and_result(rig):
+    d = rig.drives['a1']
+    d.enable()
+    rig.wire.clear()
+    note = d.start_homing(Homing(3, 100, 8500.0, 550.0, 100000.0))
+    assert strings(rig) == ['01WN,228,03,08,35,+,05,229', '01WN,229,60,000', '01PS,228']
+    assert 'zero search' in note and d.read_state().homing == HomingState.RUNNING
+    s = rig.settle(d)
+    assert s.homed and s.homing == HomingState.ATTAINED and s.position_steps == 100
+    assert strings(rig)[-1] == '01SA,100'                 # homing.offset
+    assert rig.sim().axis.raw_position_steps == pytest.approx(3000.0)
+    rig.wire.clear()
+    d.start_homing(Homing(60, 0, 0.0, 0.0, 1.0))
+    assert strings(rig) == ['01RA'] and d.read_state().position_steps == 0
+    with pytest.raises(DriveError, match='homing.speed_search = 1000 Hz'):
+        d.start_homing(Homing(3, 0, 1000.0, 500.0, 1000.0))
+    with pytest.raises(DriveError, match='homing.speed_zero = 5000 Hz'):
+        d.start_homing(Homing(-3, 0, 5000.0, 5000.0, 1000.0))
+
+
+def test_a_thousand_position_commands_write_no_eeprom_cell(rig):
+    d = rig.drives['a1']
+    d.enable()
+    for i in range(1000):
+        d.move_to(i % 7 - 3, Motion(4800.0, 1e6, 1e6))
+        rig.settle(d)
+    assert d.read_state().position_steps == 999 % 7 - 3
+    written = {s.split(',')[1] for s in rig.wire if s[2:4] == 'WN'}
+    assert written == {'228'}
+    assert rig.sim().eeprom_writes == 0 and rig.sim().eeprom_cell_writes == 0
+
+
+def test_bus_closed_in_motion_sends_99ee(rig):
+    for name in ('a1', 'a2'):
+        rig.drives[name].enable()
+        rig.drives[name].set_velocity(3000.0 * (1 if name == 'a1' else -1), FAST)
+    wait_until(lambda: rig.sim('a2').axis.velocity_hz < 0, 2.0, 'a2 running')
+    rig.bus.close()
+    wait_until(lambda: '99EE' in rig.wire, 2.0, '99EE on the wire')
+    wait_until(lambda: not rig.sim('a1').busy and not rig.sim('a2').busy, 2.0, 'all stopped')
+
+
+def test_connect_to_a_busy_drive_stops_it_first(rig):
+    with rig.line.lock:
+        rig.sim('a2').receive('02WN,150,32,030,20,+,x1,000')
+        rig.sim('a2').receive('02PS,150')             # a program nobody told the driver of
+    identity = rig.drives['a2'].connect()
+    assert '02EE' in rig.wire and identity['address'] == '02'
+    assert not rig.sim('a2').busy
+
+
+def test_power_cycle_is_found_by_the_flag(rig):
+    d = rig.drives['a1']
+    d.enable()
+    d.start_homing(Homing(60, 0, 0.0, 0.0, 1.0))
+    assert d.read_state().homed
+    with rig.line.lock:
+        rig.sim().power_cycle()
+    s = wait_until(lambda: (s := d.read_state()) and not s.homed and s, 2.0, 'power cycle')
+    assert not s.enabled and 'power cycle' in s.alarms[0]
+    assert '01SO,F7,1' in rig.wire
+
+
+def test_garbled_answers_are_repeated_then_fail_then_lose_the_link(rig):
+    d = rig.drives['a1']
+    rig.line.set_link_fault('corrupt_reply', 1)
+    assert d.read_state().position_steps == 0             # the repeat got through
+    assert rig.bus.garbled == 1
+    rig.line.set_link_fault('corrupt_reply', 2)
+    with pytest.raises(DriveError, match='no valid answer'):
+        d.read_state()
+    d.read_state()
+    rig.line.set_link_fault('corrupt_reply')              # every answer, until link_ok
+    for _ in range(2):
+        with pytest.raises(DriveError):
+            d.read_state()
+    with pytest.raises(LinkError, match='3 transactions in a row'):
+        d.read_state()
+
+
+def test_silence_of_an_idle_drive_is_a_link_error(rig):
+    rig.line.set_link_fault('no_reply')
+    with pytest.raises(LinkError, match='drive 01 did not answer QA'):
+        rig.drives['a1'].read_state()
+    rig.line.set_link_fault('link_ok')
+    rig.drives['a1'].read_state()
+    rig.line.set_link_fault('cut')
+    with pytest.raises(LinkError):
+        wait_until(lambda: rig.drives['a1'].read_state() and False, 2.0)
+
+
+def test_fault_maintenance_and_raw_access(rig):
+    d = rig.drives['a1']
+    d.enable()
+    assert d.fault_reset() == ''                          # nothing to reset
+    with rig.line.lock:
+        rig.sim().inject_protection()
+    s = wait_until(lambda: (s := d.read_state()) and s.fault and s, 2.0, 'FA off')
+    assert s.state == State.FAULT and 'protection' in s.fault_text
+    with pytest.raises(RefusedError) as e:
+        d.fault_reset()
+    assert str(e.value) == 'X-MIND K has no fault reset command; clear the cause and power-cycle'
+    with pytest.raises(DriveError, match='FA output OFF'):
+        d.move_to(10, FAST)
+    note = d.save_params()
+    assert 'no save command' in note and 'RS D2' in note and 'RD 10' in note
+    assert d.read_register('QS,RD', 'u8') == 10
+    assert d.read_register('qm,228', 'string') == '01QM,228,00,000'
+    with pytest.raises(DriveError, match='string'):
+        d.read_register('QM,228', 'u16')
+    with pytest.raises(DriveError, match='not an X-MIND K data request'):
+        d.read_register('1001', 'u16')
+    d.write_register('SO,O2', 'u8', 1)
+    assert d.read_register('QO,O2', 'u8') == 1
+    d.write_register('SA', 'i32', -42)
+    assert d.read_register('QA', 'i32') == -42
+    with pytest.raises(DriveError, match='would answer N'):
+        d.write_register('WS,IN', 'u8', 7)
+    d.write_register('WN', 'string', '150,65,50,000')
+    assert rig.sim().eeprom_cell_writes == 1              # a raw write may (allow_raw_write)
+
+
+def test_raw_ps_runs_a_stored_program_as_a_busy_job(rig):
+    d = rig.drives['a1']
+    d.write_register('WN', 'string', '228,65,300,000')
+    d.write_register('PS', 'u8', 228)
+    s = d.read_state()
+    assert s.moving and s.mode == 'STORED INSTRUCTION EXECUTION'
+    with pytest.raises(DriveError, match='busy'):
+        d.read_register('QA', 'i32')
+    assert not rig.settle(d).moving
+
+
+def test_a_move_longer_than_one_index_is_split(rig):
+    d = rig.drives['a1']
+    d.enable()
+    d.move_to(9000000, Motion(24000.0, 1.5e6, 1.5e6))
+    assert strings(rig)[-2:] == ['01WN,228,31,240,10,+8388607,x1,000', '01PS,228']
+    assert d.job.goal == 9000000
+    d.stop()
+    rig.settle(d)
+
+
+def test_a_drive_built_only_to_check_parameters_does_not_replace_the_real_one(rig):
+    d = rig.drives['a1']
+    d.enable()
+    d.set_velocity(3000.0, FAST)
+    v.make_drive(rig.bus, 'a1', {**BUS, **DRIVE, 'address': 1, 'homing.method': -3})
+    rig.bus.close()
+    wait_until(lambda: '99EE' in rig.wire, 2.0, '99EE on the wire')
+
+
+def test_make_drive_checks_its_parameters(rig):
+    with pytest.raises(ValueError, match=r'drives.a3.address: 02 is already used by drive a2'):
+        v.make_drive(rig.bus, 'a3', {**BUS, **DRIVE, 'address': 2})
+    with pytest.raises(ValueError, match=r'drives.a3.homing.method: 35 is not an X-MIND K'):
+        v.make_drive(rig.bus, 'a3', {**BUS, **DRIVE, 'address': 5, 'homing.method': 35})
+    with pytest.raises(ValueError, match=r'steps_per_rev: 2000 does not match resolution B3'):
+        v.make_drive(rig.bus, 'a3', {**BUS, **DRIVE, 'address': 5, 'resolution': 'B3'})
+
+
+def test_drive_ranges_are_refused_before_the_wire(rig):
+    d = rig.drives['a1']
+    with pytest.raises(DriveError, match='24000 Hz'):
+        d.move_to(5, Motion(30000.0, 1e5, 1e5))
+    with pytest.raises(DriveError, match='below the X-MIND K minimum'):
+        d.move_to(5, Motion(0.5, 1e5, 1e5))
+    assert not strings(rig)
+    assert v.XmindKDrive.ramp_code(1e9) == 10 and v.XmindKDrive.ramp_code(1.0) == 42
+    assert v.XmindKDrive.ramp_code(200000.0) == 30 and v.XmindKDrive.ramp_code(199999.0) == 31
+
+
+def test_estimate_shapes():
+    e = v.Estimate.index(0.0, 0.0, 20000, 10000.0, 200000.0)
+    assert e.end_s == pytest.approx(2.05) and e.state(2.05) == (20000, 0.0)
+    assert e.state(0.05)[1] == pytest.approx(10000)
+    t = v.Estimate.index(0.0, 100.0, -50, 10000.0, 200000.0)        # triangle
+    assert t.end_s == pytest.approx(2 * math.sqrt(50 / 200000)) and t.state(1.0)[0] == 50
+    r = v.Estimate.run(0.0, 0.0, -3000.0, math.inf)
+    assert r.end_s == math.inf and r.state(1.0) == (-3000.0, -3000.0)
+    r.stop(1.0, math.inf)
+    assert r.end_s == 1.0 and r.state(5.0)[0] == -3000.0

@@ -1,0 +1,306 @@
+"""AEC Vector Step end to end: vector_step_sim and vector_step_node as separate processes on one
+CAN bus (the loopback socketcand broker), driven through ROS only.
+
+The broker runs in the test process; the simulator (two drives, node-IDs 1 and 2; axis2 starts
+with its power stage blocked) and the node are started once for the module, because each
+process start costs seconds on this machine. Tests leave both drives disabled and without
+fault; the last test stops and restarts the simulator and finally the node.
+"""
+
+import math
+import signal
+import time
+
+import can
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+import pytest
+from rosharness import CONFIG, Proc, RosClient, executable, wait_for
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64
+from std_srvs.srv import SetBool, Trigger
+from stepper_drivers.protocol.socketcand_broker import SocketcandBroker
+from stepper_drivers_msgs.msg import DriveStatus
+from stepper_drivers_msgs.srv import InjectFault, ReadRegister, WriteRegister
+
+NODE = '/vector_step_node'
+SIM = '/vector_step_sim'
+STEPS_PER_RAD = 3200 / (2 * math.pi)
+
+
+class Rig:
+    """Broker, simulator and node for the module, plus helpers to reach them through ROS."""
+
+    def __init__(self, log_dir):
+        self.log_dir = log_dir
+        self.storage = log_dir / 'eeprom'
+        self.storage.mkdir()
+        self.broker = SocketcandBroker(port=0)
+        self.broker.start()
+        self.ros = RosClient('vector_step_test')
+        self.procs: list[Proc] = []
+        self.start_sim(blocked=True)
+        self.node = self.start('node', [
+            executable('stepper_drivers', 'vector_step_node'), '--ros-args',
+            '--params-file', str(CONFIG / 'vector_step.yaml'),
+            '-p', f'can.port:={self.broker.port}', '-p', 'reconnect_period_s:=0.2'])
+        self.ros.subscribe(JointState, '/joint_states', keep=True)
+        self.ros.subscribe(DiagnosticArray, '/diagnostics')
+        for d in ('axis1', 'axis2'):
+            self.ros.subscribe(DriveStatus, f'{NODE}/{d}/status')
+            self.ros.subscribe(Float64, f'{SIM}/{d}/true_position_steps')
+            self.status(d, lambda m: m.connected, 30.0, f'{d} connected')
+
+    def start(self, name, args):
+        proc = Proc(args, self.log_dir, name)
+        self.procs.append(proc)
+        return proc
+
+    def start_sim(self, blocked=False):
+        args = [executable('stepper_sim', 'vector_step_sim'), '--ros-args',
+                '--params-file', str(CONFIG / 'vector_step_sim.yaml'),
+                '-p', f'can.port:={self.broker.port}', '-p', f'storage_dir:={self.storage}']
+        if blocked:
+            args += ['-p', 'drives.axis2.power_stage_blocked:=true']
+        self.sim = self.start(f'sim{len(self.procs)}', args)
+        self.sim.wait_line('ready', 30.0)
+
+    def close(self):
+        for proc in reversed(self.procs):
+            proc.kill()
+        self.ros.close()
+        self.broker.stop()
+
+    def status(self, drive, cond=lambda m: True, timeout_s=10.0, what=''):
+        return self.ros.wait_msg(f'{NODE}/{drive}/status', cond, timeout_s,
+                                 what or f'{drive} status')
+
+    def true_steps(self, drive):
+        return self.ros.wait_msg(f'{SIM}/{drive}/true_position_steps').data
+
+    def call(self, drive, name, request=None, srv=Trigger, timeout_s=30.0):
+        return self.ros.call(srv, f'{NODE}/{drive}/{name}', request, timeout_s)
+
+    def enable(self, drive, on=True):
+        r = self.call(drive, 'enable', SetBool.Request(data=on), SetBool)
+        assert r.success, r.message
+        return r
+
+    def inject(self, drive, kind, code=0, value=0.0):
+        r = self.ros.call(InjectFault, SIM + '/inject_fault',
+                          InjectFault.Request(drive=drive, kind=kind, code=code, value=value))
+        assert r.success, r.message
+
+    def command(self, drive, topic, value):
+        self.ros.publish(Float64, f'{NODE}/{drive}/{topic}', Float64(data=value))
+
+    def read(self, drive, address, data_type):
+        return self.call(drive, 'read_register',
+                         ReadRegister.Request(address=address, data_type=data_type),
+                         ReadRegister)
+
+    def write(self, drive, address, data_type, value=0, text=''):
+        return self.call(drive, 'write_register',
+                         WriteRegister.Request(address=address, data_type=data_type,
+                                               value=value, text=text), WriteRegister)
+
+    def idle(self, drive):
+        """Leave a drive disabled and without fault for the next test."""
+        st = self.status(drive)
+        if st.fault:
+            self.inject(drive, 'clear_fault')
+            assert self.call(drive, 'fault_reset').success
+        self.enable(drive, False)
+        self.status(drive, lambda m: not m.enabled and not m.moving, what=f'{drive} idle')
+
+
+@pytest.fixture(scope='module')
+def rig(tmp_path_factory):
+    r = Rig(tmp_path_factory.mktemp('vector_step'))
+    yield r
+    r.close()
+
+
+def test_two_drives_start_safe_and_a_blocked_power_stage_is_reported(rig):
+    for d, node_id in (('axis1', '1'), ('axis2', '2')):
+        st = rig.status(d, lambda m: m.state == 'SWITCH ON DISABLED', what=f'{d} SOD')
+        assert st.connected and not st.enabled and not st.fault
+        assert st.address == node_id and st.vendor == 'AEC Vector Step'
+    diag = rig.ros.wait_msg('/diagnostics', lambda a: any(
+        s.name.endswith('axis2') and any(kv.key == 'product_code' for kv in s.values)
+        for s in a.status))
+    values = {kv.key: kv.value for s in diag.status if s.name.endswith('axis2')
+              for kv in s.values}
+    assert values['product_code'].endswith('(SMD5006)') and values['node_id'] == '2'
+    js = rig.ros.wait_msg('/joint_states')
+    assert list(js.name) == ['joint1', 'joint2'] and js.header.stamp.sec > 0
+    # axis2's power stage is blocked (STO): start-up worked, enable says why it cannot
+    r = rig.call('axis2', 'enable', SetBool.Request(data=True), SetBool)
+    assert not r.success
+    assert 'SWITCH ON DISABLED' in r.message and 'power stage is blocked' in r.message
+    assert 'STO' in r.message
+    rig.inject('axis2', 'power_stage_ok')
+    rig.enable('axis2')
+    rig.status('axis2', lambda m: m.enabled)
+    rig.idle('axis2')
+
+
+def test_enable_does_not_move_and_a_move_reaches_the_target(rig):
+    before = rig.true_steps('axis1')
+    r = rig.enable('axis1')
+    assert 'OPERATION ENABLED' in r.message
+    st = rig.status('axis1', lambda m: m.enabled)
+    assert not st.moving and rig.true_steps('axis1') == pytest.approx(before)
+    start = st.position
+    rig.command('axis1', 'position_command', start + 3.0)
+    st = rig.status('axis1', lambda m: not m.moving and abs(m.position - start - 3.0) < 1e-3,
+                    what='axis1 moved by 3 rad')
+    assert st.target_reached and st.mode == 'PROFILE POSITION'
+    assert st.position_steps == round((start + 3.0) * STEPS_PER_RAD)
+    js = rig.ros.wait_msg('/joint_states', lambda m: abs(m.position[0] - start - 3.0) < 1e-3)
+    assert js.position[1] == pytest.approx(rig.status('axis2').position, abs=1e-9)
+    rig.idle('axis1')
+
+
+def test_jog_runs_in_aec_velocity_mode_and_the_watchdog_stops_it(rig):
+    rig.enable('axis1')
+    rig.command('axis1', 'velocity_command', 4.0)
+    st = rig.status('axis1', lambda m: m.moving and m.velocity > 3.5, what='axis1 jogging')
+    assert st.mode == 'AEC VELOCITY (JOG)'
+    st = rig.status('axis1', lambda m: not m.moving, 5.0, 'watchdog stop')
+    assert st.enabled and st.velocity == 0.0
+    rig.node.wait_line('velocity watchdog', 5.0)
+    rig.idle('axis1')
+
+
+def test_home_on_the_bls_switch_while_joint_states_keep_flowing(rig):
+    rig.enable('axis1')
+    n_before = len(rig.ros.history['/joint_states'])
+    t0 = time.monotonic()
+    r = rig.call('axis1', 'home')
+    assert r.success, r.message
+    assert 'homed' in r.message and 'BLS, negative direction' in r.message
+    elapsed = time.monotonic() - t0
+    st = rig.status('axis1', lambda m: m.homed and m.homing_state == 'ATTAINED')
+    assert st.mode == 'HOMING'
+    assert st.position == pytest.approx(-13.0, abs=0.1)     # 0x607C forced at the BLS edge
+    assert len(rig.ros.history['/joint_states']) - n_before >= 0.5 * elapsed * 50
+    rig.command('axis1', 'position_command', 0.0)           # away from the switch
+    rig.status('axis1', lambda m: not m.moving and abs(m.position) < 1e-3, what='at 0')
+    rig.idle('axis1')
+
+
+def test_drive_fault_emcy_text_and_fault_reset(rig):
+    rig.enable('axis1')
+    rig.inject('axis1', 'drive_fault', code=1 << 6)          # Ralarm bit 6 over-temperature
+    st = rig.status('axis1', lambda m: m.fault, what='fault in status')
+    assert st.state == 'FAULT' and st.fault_code == 0x5400
+    assert 'power stage' in st.fault_text and 'over-temperature' in st.fault_text
+    rig.ros.wait_msg('/diagnostics', lambda a: any(
+        s.name.endswith('axis1') and s.level == DiagnosticStatus.ERROR and '0x5400' in s.message
+        for s in a.status))
+    refused = st.commands_refused
+    rig.command('axis1', 'position_command', 1.0)
+    st = rig.status('axis1', lambda m: m.commands_refused > refused)
+    assert 'fault_reset' in st.last_refusal
+    r = rig.call('axis1', 'fault_reset')
+    assert not r.success and '0x5400' in r.message and 'over-temperature' in r.message
+    rig.inject('axis1', 'clear_fault')
+    r = rig.call('axis1', 'fault_reset')
+    assert r.success, r.message
+    st = rig.status('axis1', lambda m: not m.fault)
+    assert st.state == 'SWITCH ON DISABLED'
+
+
+def test_typed_sdo_read_and_write(rig):
+    for address, data_type, value in (('0x1001:0', 'u8', 0), ('0x6061:0', 'i8', 1),
+                                      ('0x605A:0', 'i16', 2), ('0x1000:0', 'u32', 0x00040192),
+                                      ('0x202A:1', 'u32', 1234567890)):
+        r = rig.read('axis2', address, data_type)
+        assert r.success and r.value == value, (address, r.message)
+    r = rig.read('axis2', '0x6505:0', 'string')                 # segmented upload
+    assert r.success and r.text == 'www.aec-smd.it'
+    st = rig.status('axis1')
+    r = rig.read('axis1', '0x6064:0', 'i32')
+    assert r.success and r.value == st.position_steps
+    r = rig.write('axis1', '0x6504:0', 'string', text='stepper_drivers rig')
+    assert r.success, r.message
+    assert rig.read('axis1', '0x6504:0', 'string').text == 'stepper_drivers rig'
+    r = rig.write('axis1', '0x6098:0', 'i8', -3)
+    assert r.success and rig.read('axis1', '0x2052:1', 'i16').value == -3
+    r = rig.write('axis1', '0x1000:0', 'u32', 5)
+    assert not r.success and '0x06010002' in r.message
+    r = rig.read('axis1', '0x6064:0', 'i16')
+    assert not r.success and 'answered 4 byte' in r.message
+    r = rig.write('axis2', '0x2020:1', 'u32', 5)
+    assert not r.success and 'allow_raw_write' in r.message
+
+
+def test_save_params_is_verified_by_rloadsav(rig):
+    r = rig.write('axis1', '0x2020:1', 'u32', 170000)           # Rhmaxspc (SAVE)
+    assert r.success, r.message
+    r = rig.call('axis1', 'save_params')
+    assert r.success, r.message
+    assert 'Reepsts 0' in r.message
+    stored = wait_for(lambda: list(rig.storage.glob('vector_step_node1.json')), 5.0, 'EEPROM')
+    assert '170000' in stored[0].read_text()
+
+
+def sdo_statusword(port: int, node_id: int) -> int:
+    """Ask a drive directly (expedited upload of 0x6041) with a raw python-can client."""
+    bus = can.Bus(interface='socketcand', host='127.0.0.1', port=port, channel='can0',
+                  tcp_tune=True)
+    try:
+        bus.send(can.Message(arbitration_id=0x600 + node_id, is_extended_id=False,
+                             data=bytes.fromhex('4041600000000000')))
+        deadline = time.monotonic() + 2.0
+        while time.monotonic() < deadline:
+            msg = bus.recv(0.5)
+            if msg is not None and msg.arbitration_id == 0x580 + node_id:
+                return int.from_bytes(msg.data[4:6], 'little')
+        raise AssertionError(f'node {node_id} did not answer')
+    finally:
+        bus.shutdown()
+
+
+def test_heartbeat_loss_restart_recovery_and_shutdown(rig):
+    assert rig.write('axis1', '0x2020:1', 'u32', 170001).success     # saved: survives the
+    assert rig.call('axis1', 'save_params').success                  # power cycle below
+    rig.enable('axis1')
+    rig.command('axis1', 'velocity_command', 2.0)
+    rig.status('axis1', lambda m: m.moving, what='axis1 jogging')
+    rig.sim.kill()                                               # the drives vanish
+    st = rig.status('axis1', lambda m: m.state == 'DISCONNECTED', 5.0, 'DISCONNECTED')
+    assert not st.connected
+    rig.ros.wait_msg('/diagnostics', lambda a: any(
+        s.name.endswith('link') and s.level == DiagnosticStatus.ERROR for s in a.status))
+    rig.node.wait_line('heartbeat lost', 5.0)
+    rig.start_sim()                                              # power on again
+    st = rig.status('axis1', lambda m: m.connected, 20.0, 'reconnected')
+    assert st.state == 'SWITCH ON DISABLED' and not st.moving and not st.enabled
+    st = rig.status('axis1', lambda m: m.link_reconnects >= 1)
+    rig.status('axis2', lambda m: m.connected, what='axis2 reconnected')
+    before = rig.true_steps('axis1')
+    time.sleep(0.3)                                              # nothing resumes by itself
+    assert rig.true_steps('axis1') == pytest.approx(before)
+    assert rig.read('axis1', '0x2020:1', 'u32').value == 170001  # saved before the restart
+    # SIGTERM: stop, disable, close; the drive stays disabled
+    rig.enable('axis1')
+    rig.command('axis1', 'velocity_command', 2.0)
+    rig.status('axis1', lambda m: m.moving, what='jogging again')
+    assert rig.node.stop(signal.SIGTERM) == 0
+    assert sdo_statusword(rig.broker.port, 1) & 0x4F == 0x40     # SWITCH ON DISABLED
+
+
+def test_bad_parameter_fails_start_up_with_one_line(tmp_path):
+    text = (CONFIG / 'vector_step.yaml').read_text().replace('node_id: 2', 'node_id: 300')
+    f = tmp_path / 'bad.yaml'
+    f.write_text(text)
+    p = Proc([executable('stepper_drivers', 'vector_step_node'), '--ros-args',
+              '--params-file', str(f)], tmp_path, 'bad')
+    try:
+        assert p.proc.wait(timeout=30) == 2
+    finally:
+        p.kill()
+    out = p.output().strip().splitlines()
+    assert out[-1] == ('vector_step_node: parameter drives.axis2.node_id: 300 is out of range '
+                       '(allowed: an integer from 1 to 127)'), out

@@ -1,0 +1,280 @@
+"""X-MIND K end to end: xmind_k_sim and xmind_k_node as separate processes, driven through ROS.
+
+Three drives on one simulated RS-485 line (a pty). Every check goes through the node's topics and
+services; the simulator's true position topic and fault injection play the real world. Line
+timing is off except where the test is about it (it makes a 9600 baud line 20x slower).
+"""
+
+import math
+import signal
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+import pytest
+from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+from rcl_interfaces.srv import SetParameters
+from rosharness import CONFIG, executable, wait_for
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64
+from std_srvs.srv import SetBool, Trigger
+from stepper_drivers_msgs.msg import DriveStatus
+from stepper_drivers_msgs.srv import InjectFault, ReadRegister, WriteRegister
+
+NODE = '/xmind_k_node'
+SIM = '/xmind_k_sim'
+STEPS_PER_RAD = 2000 / (2 * math.pi)
+DRIVES = ('axis1', 'axis2', 'axis3')
+
+
+class Bench:
+    """A simulator and a node on a private pty symlink, plus helpers to reach them via ROS."""
+
+    def __init__(self, procs, ros, tmp_path, line_timing=False, node_args=()):
+        self.procs, self.ros, self.tmp = procs, ros, tmp_path
+        self.link = str(tmp_path / 'xmind_k.tty')
+        self.line_timing = line_timing
+        self.start_sim()
+        self.node = procs.start('node', [
+            executable('stepper_drivers', 'xmind_k_node'), '--ros-args',
+            '--params-file', str(CONFIG / 'xmind_k.yaml'), '-p', f'port:={self.link}',
+            '-p', 'reconnect_period_s:=0.2', '-p', 'publish_rate_hz:=20.0',
+            '-p', 'timeout_s:=0.25',        # generous: the simulator shares 2 busy cores
+            *[a for d in DRIVES for a in ('-p', f'drives.{d}.busy_poll_period_s:=0.05')],
+            *node_args])
+        ros.subscribe(JointState, '/joint_states', keep=True)
+        ros.subscribe(DiagnosticArray, '/diagnostics')
+        for d in DRIVES:
+            ros.subscribe(DriveStatus, f'{NODE}/{d}/status', keep=True)
+            ros.subscribe(Float64, f'{SIM}/{d}/true_position_steps')
+        for d in DRIVES:
+            self.status(d, lambda m: m.connected, timeout_s=20.0, what=f'{d} connected')
+
+    def start_sim(self):
+        self.sim = self.procs.start('sim', [
+            executable('stepper_sim', 'xmind_k_sim'), '--ros-args',
+            '--params-file', str(CONFIG / 'xmind_k_sim.yaml'), '-p', f'port:={self.link}',
+            '-p', f'line_timing:={str(self.line_timing).lower()}'])
+        self.sim.wait_line('ready', 30.0)
+
+    def status(self, drive, cond=lambda m: True, timeout_s=10.0, what=''):
+        return self.ros.wait_msg(f'{NODE}/{drive}/status', cond, timeout_s,
+                                 what or f'{drive} status')
+
+    def true_steps(self, drive):
+        return self.ros.wait_msg(f'{SIM}/{drive}/true_position_steps').data
+
+    def fresh_true_steps(self, drive):
+        """A true position published after this call (the topic runs at 20 Hz)."""
+        topic = f'{SIM}/{drive}/true_position_steps'
+        with self.ros.lock:
+            self.ros.latest.pop(topic, None)
+        return self.ros.wait_msg(topic).data
+
+    def call(self, drive, name, request=None, srv=Trigger, timeout_s=30.0):
+        return self.ros.call(srv, f'{NODE}/{drive}/{name}', request, timeout_s)
+
+    def enable(self, drive, on=True):
+        r = self.call(drive, 'enable', SetBool.Request(data=on), SetBool)
+        assert r.success, r.message
+        return r
+
+    def inject(self, drive, kind, code=0, value=0.0):
+        r = self.ros.call(InjectFault, SIM + '/inject_fault',
+                          InjectFault.Request(drive=drive, kind=kind, code=code, value=value))
+        assert r.success, r.message
+        return r
+
+    def command(self, drive, topic, value):
+        self.ros.publish(Float64, f'{NODE}/{drive}/{topic}', Float64(data=value))
+
+    def set_param(self, name, value):
+        p = Parameter(name=name, value=ParameterValue(type=ParameterType.PARAMETER_DOUBLE,
+                                                      double_value=float(value)))
+        r = self.ros.call(SetParameters, NODE + '/set_parameters',
+                          SetParameters.Request(parameters=[p]))
+        assert r.results[0].successful, r.results[0].reason
+
+
+@pytest.fixture
+def bench(procs, ros, tmp_path):
+    return Bench(procs, ros, tmp_path)
+
+
+def test_three_drives_move_home_with_line_timing_and_busy_silence(procs, ros, tmp_path):
+    b = Bench(procs, ros, tmp_path, line_timing=True)
+    for d in DRIVES:
+        st = b.status(d)
+        assert st.vendor == 'X-MIND K' and st.address == f'0{DRIVES.index(d) + 1}'
+        assert st.state == 'SWITCH ON DISABLED' and not st.enabled and not st.velocity_valid
+    b.enable('axis1')
+    before = b.true_steps('axis1')
+    assert abs(before) < 1
+    # A 3 rad move (955 steps) at 20 rad/s: the drive is silent while it runs (§3); the node
+    # shows an estimated position, keeps the link up, and corrects it by QA at the end.
+    b.command('axis1', 'position_command', 3.0)
+    st = b.status('axis1', lambda m: not m.moving and not m.position_estimated
+                  and m.position_steps == 955, timeout_s=10.0, what='axis1 at 955 steps')
+    during = [m for m in ros.history[f'{NODE}/axis1/status'] if m.moving]
+    assert during and all(m.position_estimated and m.connected for m in during)
+    assert during[0].mode == 'HIGH RESOLUTION INDEXED RUN WITH RAMP'
+    assert abs(b.fresh_true_steps('axis1') - 955) < 0.5
+    assert st.link_errors == 0, 'a busy drive is silent by design, not a link error'
+    history = ros.history[f'{NODE}/axis1/status']
+    assert all(m.connected for m in history[-50:])
+    assert b.true_steps('axis2') == 0 and b.true_steps('axis3') == 0
+    # Zero search on PX (edge at raw 3000 steps, + direction), then counter reset (§7.6)
+    r = b.call('axis1', 'home')
+    assert r.success, r.message
+    assert 'zero search' in r.message and 'homed' in r.message
+    st = b.status('axis1', lambda m: m.homed and not m.moving)
+    assert st.homing_state == 'ATTAINED' and st.position_steps == 0
+    assert b.fresh_true_steps('axis1') == pytest.approx(0.0, abs=0.5)
+    # axis3 homes without a switch (method 60: RA); axis2 in - direction
+    r = b.call('axis3', 'home')
+    assert r.success and 'counter reset' in r.message, r.message
+    r = b.call('axis2', 'home')
+    assert r.success, r.message
+    js = ros.wait_msg('/joint_states')
+    assert list(js.name) == ['joint1', 'joint2', 'joint3']
+    assert all(math.isnan(v) for v in js.velocity), 'X-MIND K has no velocity readback'
+
+
+def test_velocity_change_and_watchdog_stop(bench):
+    bench.enable('axis1')
+
+    def commanding(velocity, cond, what):
+        """Keep commanding (as a client does, faster than command_timeout_s) until cond."""
+        def check():
+            bench.command('axis1', 'velocity_command', velocity)
+            return cond()
+        wait_for(check, 10.0, what, period_s=0.1)
+
+    # 6 rad/s = 1909 Hz: an unramped free run (22) on the Table 4 grid (1900 Hz)
+    commanding(6.0, lambda: bench.status('axis1').velocity > 5.0, 'axis1 running')
+    p0 = bench.fresh_true_steps('axis1')
+    commanding(6.0, lambda: bench.fresh_true_steps('axis1') > p0 + 50, 'true position rising')
+    # a new direction: ES, wait until the drive answers again, rewrite cell 229, PS again
+    commanding(-6.0, lambda: bench.status('axis1').velocity < -5.0, 'running backwards')
+    p1 = bench.fresh_true_steps('axis1')
+    commanding(-6.0, lambda: bench.fresh_true_steps('axis1') < p1 - 50, 'true position falling')
+    # no more commands: the watchdog stops it (ES)
+    st = bench.status('axis1', lambda m: not m.moving, timeout_s=5.0, what='watchdog stop')
+    bench.node.wait_line('velocity watchdog', 5.0)
+    still = bench.fresh_true_steps('axis1')
+    assert bench.fresh_true_steps('axis1') == still
+    st = bench.status('axis1', lambda m: not m.position_estimated)
+    assert st.position_steps == pytest.approx(still, abs=0.5) and st.enabled
+
+
+def test_commands_refused_nan_limits_not_enabled_and_drive_range(bench):
+    bench.command('axis1', 'position_command', 1.0)
+    st = bench.status('axis1', lambda m: 'not enabled' in m.last_refusal)
+    assert st.commands_refused >= 1
+    bench.enable('axis1')
+    bench.command('axis1', 'position_command', math.nan)
+    bench.status('axis1', lambda m: 'finite' in m.last_refusal)
+    bench.command('axis1', 'position_command', 1000.0)
+    bench.status('axis1', lambda m: 'min_position..max_position' in m.last_refusal)
+    bench.command('axis1', 'velocity_command', -100.0)
+    st = bench.status('axis1', lambda m: 'max_velocity' in m.last_refusal)
+    assert st.commands_refused >= 4 and not st.moving
+    # what the drive itself cannot do: 80 rad/s = 25465 Hz > 24000 Hz (§4.1.2)
+    bench.set_param('drives.axis1.max_velocity', 100.0)
+    bench.set_param('drives.axis1.profile_velocity', 80.0)
+    bench.command('axis1', 'position_command', 2.0)
+    bench.node.wait_line('exceeds the X-MIND K maximum of 24000 Hz', 5.0)
+    assert abs(bench.fresh_true_steps('axis1')) < 1
+
+
+def test_pty_cut_and_restored_reconnects_and_stays_stopped(bench):
+    bench.enable('axis1')
+    bench.command('axis1', 'position_command', 1.0)
+    bench.status('axis1', lambda m: not m.moving and m.position_steps == 318,
+                 what='axis1 at 1 rad')
+    bench.inject('', 'cut')
+    st = bench.status('axis1', lambda m: m.state == 'DISCONNECTED', what='DISCONNECTED')
+    assert not st.connected
+    bench.ros.wait_msg('/diagnostics', lambda a: any(
+        s.name.endswith('link') and s.level == DiagnosticStatus.ERROR for s in a.status))
+    bench.command('axis1', 'position_command', 2.0)
+    bench.status('axis1', lambda m: 'DISCONNECTED' in m.last_refusal)
+    bench.inject('', 'link_ok')
+    st = bench.status('axis1', lambda m: m.connected, timeout_s=15.0, what='reconnected')
+    assert not st.moving and st.position_steps == 318
+    assert st.enabled, 'no power cycle (flag F7 kept): the drive stayed enabled'
+    assert bench.fresh_true_steps('axis1') == pytest.approx(318, abs=0.5)
+    bench.command('axis1', 'position_command', 0.5)
+    bench.status('axis1', lambda m: not m.moving and m.position_steps == 159, what='moves again')
+
+
+def test_garbled_and_lost_replies_are_survived(bench):
+    bench.enable('axis2')
+    before = bench.status('axis2')
+    bench.inject('', 'corrupt_reply', code=3)
+    bench.inject('', 'no_reply', code=1)
+    bench.command('axis2', 'position_command', -2.0)
+    st = bench.status('axis2', lambda m: not m.moving and m.position_steps == -637,
+                      timeout_s=15.0, what='axis2 at -2 rad')
+    assert st.link_errors > before.link_errors
+    history = bench.ros.history[f'{NODE}/axis2/status']
+    assert all(m.connected for m in history if m.header.stamp.sec >= before.header.stamp.sec)
+    assert bench.fresh_true_steps('axis2') == pytest.approx(-637, abs=0.5)
+
+
+def test_fault_reset_refused_power_cycle_and_save_params(bench):
+    bench.enable('axis1')
+    bench.inject('axis1', 'drive_fault')
+    st = bench.status('axis1', lambda m: m.fault, what='FA off in status')
+    assert st.state == 'FAULT' and 'protection' in st.fault_text
+    r = bench.call('axis1', 'fault_reset')
+    assert not r.success
+    assert 'X-MIND K has no fault reset command; clear the cause and power-cycle' in r.message
+    bench.command('axis1', 'position_command', 1.0)
+    bench.status('axis1', lambda m: 'FAULT' in m.last_refusal)
+    bench.inject('axis1', 'clear_fault')            # the cause is gone and the drive restarted
+    st = bench.status('axis1', lambda m: not m.fault, timeout_s=5.0, what='FA back')
+    assert not st.enabled and not st.homed and 'power cycle' in ' '.join(st.alarms)
+    r = bench.call('axis1', 'save_params')
+    assert r.success and 'no save command' in r.message and 'RS D2' in r.message, r.message
+    r = bench.call('axis1', 'read_register', ReadRegister.Request(address='QS,RD', data_type='u8'),
+                   ReadRegister)
+    assert r.success and r.value == 10, r.message
+    r = bench.call('axis1', 'read_register', ReadRegister.Request(address='QM,228',
+                                                                   data_type='string'),
+                   ReadRegister)
+    assert r.success and r.text == '01QM,228,00,000', r.text
+    r = bench.call('axis1', 'write_register',
+                   WriteRegister.Request(address='SO,O2', data_type='u8', value=1), WriteRegister)
+    assert r.success, r.message
+    r = bench.call('axis1', 'read_register', ReadRegister.Request(address='QO,O2', data_type='u8'),
+                   ReadRegister)
+    assert r.success and r.value == 1
+    r = bench.call('axis2', 'write_register', WriteRegister.Request(address='SA', data_type='i32',
+                                                                    value=5), WriteRegister)
+    assert not r.success and 'allow_raw_write' in r.message
+
+
+def test_sigterm_stops_and_disables_every_drive(bench):
+    for d in ('axis1', 'axis2'):
+        bench.enable(d)
+        bench.command(d, 'velocity_command', 20.0)      # ramped free runs (32)
+    for d in ('axis1', 'axis2'):
+        bench.status(d, lambda m: m.moving, what=f'{d} running')
+    assert bench.node.stop(signal.SIGTERM) == 0
+    p = {d: bench.fresh_true_steps(d) for d in ('axis1', 'axis2')}
+    assert all(bench.fresh_true_steps(d) == p[d] for d in p), 'still moving after shutdown'
+    # CY/CN cannot be read back over the line: the simulator logs the current
+    for d in DRIVES:
+        bench.sim.wait_line(f'{d}: motor current OFF (CN)', 5.0)
+    assert 'shutdown:' not in bench.node.output(), bench.node.output()[-2000:]
+
+
+def test_bad_parameter_fails_start_up_with_one_line(procs, tmp_path):
+    text = (CONFIG / 'xmind_k.yaml').read_text().replace('method: -3 ', 'method: 35 ')
+    f = tmp_path / 'bad.yaml'
+    f.write_text(text)
+    p = procs.start('bad', [executable('stepper_drivers', 'xmind_k_node'), '--ros-args',
+                            '--params-file', str(f)])
+    assert p.proc.wait(timeout=20) == 2
+    last = p.output().strip().splitlines()[-1]
+    assert last.startswith('xmind_k_node: parameter drives.axis2.homing.method: 35 is not an '
+                           'X-MIND K method (allowed: 3 = zero search'), last
