@@ -26,7 +26,7 @@ STEPS_PER_RAD = 1024 / (2 * math.pi)       # Distance per revolution [0x00] = 10
 class Bench:
     """The simulator on a fresh pty and the node on its symlink, plus ROS helpers."""
 
-    def __init__(self, procs, ros, tmp_path):
+    def __init__(self, procs, ros, tmp_path, node_args=()):
         self.procs, self.ros, self.tmp = procs, ros, tmp_path
         self.port = str(tmp_path / 'rd4.pty')
         self.storage = tmp_path / 'flash'
@@ -41,7 +41,7 @@ class Bench:
             '-p', 'reconnect_period_s:=0.2', '-p', 'publish_rate_hz:=20.0',
             # the simulator is a Python process on a shared 2-core machine: a reply can be later
             # than the 0.1 s a real line needs (config/rd4.yaml), and no test is about that
-            '-p', 'timeout_s:=0.3'])
+            '-p', 'timeout_s:=0.3', *node_args])
         ros.subscribe(JointState, '/joint_states')
         ros.subscribe(DiagnosticArray, '/diagnostics')
         for d in ('axis1', 'axis2'):
@@ -259,3 +259,22 @@ def test_bad_parameter_fails_start_up_with_one_line(procs, tmp_path):
     out = p.output().strip().splitlines()
     assert out[-1] == ('rd4_node: parameter drives.axis2.node_id: 300 is out of range '
                        '(allowed: an integer from 1 to 247)'), out
+
+
+def test_a_unit_that_does_not_answer_leaves_the_others_working(procs, ros, tmp_path):
+    """Node id 9 is configured but absent from the line (powered off): it is DISCONNECTED and
+    retried; the two present units connect and move; diagnostics say which one is missing."""
+    bench = Bench(procs, ros, tmp_path, node_args=(
+        '-p', 'drives:=[axis1,axis2,axis3]', '-p', 'drives.axis3.node_id:=9'))
+    ros.subscribe(DriveStatus, f'{NODE}/axis3/status')
+    st = bench.status('axis3', what='axis3 status')
+    assert not st.connected and st.state == 'DISCONNECTED'
+    bench.enable('axis1')
+    bench.command('axis1', 'position_command', 1.0)
+    bench.status('axis1', lambda m: not m.moving and abs(m.position - 1.0) < 0.01, what='moved')
+    diag = bench.ros.wait_msg('/diagnostics', lambda a: any(
+        s.name.endswith('link') and s.level == DiagnosticStatus.WARN for s in a.status))
+    (link,) = [s for s in diag.status if s.name.endswith('link')]
+    assert 'axis3' in link.message and 'axis1' not in link.message
+    r = bench.call('axis3', 'enable', SetBool.Request(data=True), SetBool)
+    assert not r.success and 'DISCONNECTED' in r.message
