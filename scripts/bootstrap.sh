@@ -96,7 +96,8 @@ fi
 # --- colcon build, skipped when no source changed since the last successful build.
 # shellcheck source=env.sh
 set +u; STEPPER_NO_WORKSPACE=1 source "$ROOT/scripts/env.sh"; set -u
-newest=$(find src config colcon.meta -newer "$STAMP_DIR/build" -print -quit 2>/dev/null || echo changed)
+newest=$(find src config colcon.meta -newer "$STAMP_DIR/build" -not -path '*/__pycache__*' \
+    -not -name '*.pyc' -print -quit 2>/dev/null || echo changed)
 if [ ! -f "$STAMP_DIR/build" ] || [ -n "$newest" ] || [ ! -f install/local_setup.bash ]; then
     log "colcon build"
     args=(--symlink-install --event-handlers console_direct- console_stderr+)
