@@ -1,10 +1,13 @@
 #!/usr/bin/env python3
-"""The embedded default: simulated drives and their driver nodes, driven through ROS only.
+"""The README's main command: four simulated drive families and their nodes, driven through ROS.
 
-For each vendor: start its simulator and its node (the params files in config/, on a free port),
-then per drive: enable, home, move to two targets and back, a velocity run that the node's watchdog
-stops, disable. Prints joint states as it goes and exits 0 when every step worked, leaving no process.
-Run it with scripts/demo.sh (which bootstraps the workspace first).
+Every vendor in DEMOS at once (in parallel): its simulator and its node (the params files in
+config/, on a free port or pty), then per drive, also in parallel: enable, home, the moves of
+`targets`, a velocity run that the node's watchdog stops (no more velocity_command after 1 s),
+disable. A live status table shows every drive meanwhile; at the end a plot of commanded versus
+actual position of every drive over time is written (default out/demo_positions.png). Exits 0
+when every step worked, leaving no process behind. Run it with scripts/demo.sh (which bootstraps
+the workspace first).
 """
 
 from __future__ import annotations
@@ -15,15 +18,17 @@ import os
 import pathlib
 import sys
 import tempfile
+import threading
 import time
 
 os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
 
-from sensor_msgs.msg import JointState  # noqa: E402
 from std_msgs.msg import Float64  # noqa: E402
 from std_srvs.srv import SetBool, Trigger  # noqa: E402
+from stepper_drivers.cli import view  # noqa: E402
 from stepper_drivers.tools.client import RosClient  # noqa: E402
-from stepper_drivers.tools.processes import CONFIG, Proc, executable, free_port, wait_for  # noqa
+from stepper_drivers.tools.processes import (CONFIG, ROOT, Proc, executable,  # noqa: E402
+                                             free_port)
 from stepper_drivers_msgs.msg import DriveStatus  # noqa: E402
 
 # vendor: simulator, node, params files, the parameter that carries the link address, and the moves
@@ -33,41 +38,172 @@ DEMOS = {
     # link='path': the link is a serial port path (the simulator's pty symlink), not a TCP port
     'rd4': dict(sim='rd4_sim', node='rd4_node', link_param='port', link='path',
                 targets=(3.0, -2.0, 0.0), velocity=6.0),
+    # 2000 step/rev: targets within the 1e-3 rad check (-2.0 rad would be 0.0012 rad off)
+    'xmind_k': dict(sim='xmind_k_sim', node='xmind_k_node', link_param='port', link='path',
+                    targets=(3.0, -4.0, 0.0), velocity=6.0),
+    # broker=True: a CAN bus, the loopback socketcand broker started first on that port
+    'vector_step': dict(sim='vector_step_sim', node='vector_step_node', link_param='can.port',
+                        broker=True, targets=(3.0, -2.0, 0.0), velocity=6.0),
 }
+
+# Participants announce every 0.3 s instead of 3 s: the demo's client sees the nodes at once.
+FAST_DISCOVERY = {'FASTRTPS_DEFAULT_PROFILES_FILE': str(CONFIG / 'fastdds_fast_discovery.xml')}
+DEMO_TIME_LIMIT_S = 100.0      # the README promises under two minutes, bootstrap included
+POSITION_TOLERANCE = 1e-3      # rad: every target of DEMOS is this close to a whole step
+VELOCITY_RUN_S = 1.0
+VELOCITY_COMMAND_PERIOD_S = 0.1     # 10 Hz, well inside command_timeout_s (0.5 s in config/)
+LOG_LINES_SHOWN = 14
+
+
+class Console:
+    """Log lines and the live status table, without the two getting in each other's way.
+
+    On a terminal the screen is redrawn: the table, then the last log lines. Elsewhere (a pipe,
+    CI) log lines are printed as they come and the table every `table_period_s`.
+    """
+
+    def __init__(self, demo: 'Demo', table_period_s: float = 5.0):
+        self.demo = demo
+        self.tty = sys.stdout.isatty()
+        self.lock = threading.Lock()
+        self.lines: list[str] = []
+        self.table_period_s = table_period_s
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5)
+        with self.lock:
+            print(self._table(), flush=True)
+
+    def log(self, text: str) -> None:
+        stamp = f'{time.monotonic() - self.demo.t0:6.1f} s  '
+        with self.lock:
+            self.lines.append(stamp + text)
+            if not self.tty:
+                print(stamp + text, flush=True)
+
+    def _table(self) -> str:
+        rows = [view.row(label, *self.demo.latest(label)) for label in self.demo.drive_labels()]
+        return view.table(rows)
+
+    def _run(self) -> None:
+        period = 0.25 if self.tty else self.table_period_s
+        while not self._stop.wait(period):
+            with self.lock:
+                if not self.demo.drive_labels():
+                    continue
+                if self.tty:
+                    title = (f'stepper_drivers demo  {time.monotonic() - self.demo.t0:5.1f} s   '
+                             '(live status of every drive; log below)')
+                    text = '\n'.join([title, self._table(), ''] + self.lines[-LOG_LINES_SHOWN:])
+                    sys.stdout.write(view.CLEAR_SCREEN + text + '\n')
+                    sys.stdout.flush()
+                else:
+                    print(self._table() + '\n', flush=True)
 
 
 class Demo:
-    def __init__(self, ros: RosClient, log_dir: pathlib.Path, verbose: bool):
+    def __init__(self, ros: RosClient, log_dir: pathlib.Path):
         self.ros = ros
         self.log_dir = log_dir
-        self.verbose = verbose
+        self.t0 = time.monotonic()
+        self.wall0 = time.time()
+        self.deadline = self.t0 + DEMO_TIME_LIMIT_S
         self.procs: list[Proc] = []
         self.failures: list[str] = []
+        self.lock = threading.Lock()
+        self.console = Console(self)
+        # per drive label ('xplus_mt_node/axis1'): status history, commands, phases
+        self.drives: dict[str, dict] = {}
 
+    # ------------------------------------------------------------------------- bookkeeping
     def say(self, text: str) -> None:
-        print(text, flush=True)
+        self.console.log(text)
 
+    def check(self, ok: bool, what: str) -> bool:
+        if not ok:
+            with self.lock:
+                self.failures.append(what)
+            self.say(f'FAILED: {what}')
+        return ok
+
+    def drive_labels(self) -> list[str]:
+        with self.lock:
+            return sorted(self.drives)
+
+    def latest(self, label: str) -> tuple[DriveStatus | None, float]:
+        with self.lock:
+            d = self.drives[label]
+            if not d['status']:
+                return None, math.inf
+            return d['status'][-1][1], time.monotonic() - d['status'][-1][0]
+
+    def track(self, vendor: str, node: str, drive: str) -> str:
+        """Subscribe to a drive's status, keeping (receive time, message) for the plot."""
+        label = f'{node}/{drive}'
+        with self.lock:
+            self.drives[label] = dict(vendor=vendor, status=[], commands=[], phases=[])
+
+        def on_status(msg: DriveStatus, label=label) -> None:
+            with self.lock:
+                self.drives[label]['status'].append((time.monotonic(), msg))
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+        self.ros.node.create_subscription(
+            DriveStatus, f'/{label}/status', on_status,
+            QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE))
+        return label
+
+    def commanded(self, label: str, position: float) -> None:
+        with self.lock:
+            self.drives[label]['commands'].append((time.monotonic(), position))
+
+    def phase(self, label: str, name: str, start: float, end: float) -> None:
+        with self.lock:
+            self.drives[label]['phases'].append((name, start, end))
+
+    def wait_status(self, label: str, cond, timeout_s: float, what: str) -> DriveStatus | None:
+        deadline = min(time.monotonic() + timeout_s, self.deadline)
+        while True:
+            msg, _age = self.latest(label)
+            if msg is not None and cond(msg):
+                return msg
+            if time.monotonic() >= deadline:
+                self.check(False, f'{label}: {what} not seen within {timeout_s:g} s')
+                return msg
+            time.sleep(0.02)   # poll the subscription's latest message
+
+    # ------------------------------------------------------------------------------ start-up
     def start(self, vendor: str, spec: dict) -> tuple[str, list[str]]:
         port = str(free_port()) if spec.get('link') != 'path' else str(self.log_dir / vendor)
-        sim = Proc([executable('stepper_sim', spec['sim']), '--ros-args', '--params-file',
-                    str(CONFIG / f"{vendor}_sim.yaml"), '-p', f"{spec['link_param']}:={port}"],
-                   self.log_dir, spec['sim'])
-        self.procs.append(sim)
+        if spec.get('broker'):
+            broker = self.proc([executable('stepper_drivers', 'socketcand_broker'), '--port',
+                                port], f'{vendor}_broker')
+            broker.wait_line('listening', 10.0)
+        sim = self.proc([executable('stepper_sim', spec['sim']), '--ros-args', '--params-file',
+                         str(CONFIG / f'{vendor}_sim.yaml'), '-p',
+                         f"{spec['link_param']}:={port}"], spec['sim'])
         sim.wait_line('ready', 30.0)
-        node = Proc([executable('stepper_drivers', spec['node']), '--ros-args', '--params-file',
-                     str(CONFIG / f'{vendor}.yaml'), '-p', f"{spec['link_param']}:={port}"],
-                    self.log_dir, spec['node'])
-        self.procs.append(node)
-        ns = '/' + spec['node']
-        self.ros.subscribe(JointState, '/joint_states')
+        self.proc([executable('stepper_drivers', spec['node']), '--ros-args', '--params-file',
+                   str(CONFIG / f'{vendor}.yaml'), '-p', f"{spec['link_param']}:={port}"],
+                  spec['node'])
         drives = self._drive_names(vendor)
-        for d in drives:
-            self.ros.subscribe(DriveStatus, f'{ns}/{d}/status')
-            self.ros.wait_msg(f'{ns}/{d}/status', lambda m: m.connected, 30.0,
-                              f'{spec["node"]}/{d} to connect')
+        labels = [self.track(vendor, spec['node'], d) for d in drives]
+        for label in labels:
+            self.wait_status(label, lambda m: m.connected, 30.0, 'connected')
         where = port if spec.get('link') == 'path' else f'127.0.0.1:{port}'
         self.say(f'[{vendor}] simulator and node up on {where}; drives: {", ".join(drives)}')
-        return ns, drives
+        return '/' + spec['node'], drives
+
+    def proc(self, args: list[str], name: str) -> Proc:
+        p = Proc(args, self.log_dir, name, FAST_DISCOVERY)
+        with self.lock:
+            self.procs.append(p)
+        return p
 
     @staticmethod
     def _drive_names(vendor: str) -> list[str]:
@@ -75,102 +211,195 @@ class Demo:
         params = yaml.safe_load((CONFIG / f'{vendor}.yaml').read_text())
         return list(next(iter(params.values()))['ros__parameters']['drives'])
 
-    def check(self, ok: bool, what: str) -> bool:
-        if not ok:
-            self.failures.append(what)
-            self.say(f'  FAILED: {what}')
-        return ok
-
-    def service(self, srv_type, name: str, request=None, timeout_s: float = 30.0):
-        resp = self.ros.call(srv_type, name, request, timeout_s)
-        self.say(f'  {name.split("/")[-1]}: {resp.message}')
-        self.check(resp.success, f'{name}: {resp.message}')
+    # ------------------------------------------------------------------------ the sequence
+    def service(self, label: str, srv_type, name: str, request=None, timeout_s: float = 30.0):
+        try:
+            resp = self.ros.call(srv_type, f'/{label}/{name}', request, timeout_s)
+        except AssertionError as e:
+            self.check(False, f'{label}: {e}')
+            return None
+        self.say(f'[{label}] {name}: {resp.message}')
+        self.check(resp.success, f'{label} {name}: {resp.message}')
         return resp
 
-    def status(self, ns: str, drive: str) -> DriveStatus:
-        return self.ros.latest[f'{ns}/{drive}/status']
-
-    def print_joints(self, ns: str) -> None:
-        js = self.ros.latest.get('/joint_states')
-        if js is not None:
-            joints = '  '.join(f'{n}={p:+8.3f} rad ({v:+7.2f} rad/s)'
-                               for n, p, v in zip(js.name, js.position, js.velocity))
-            self.say(f'    joint_states t={js.header.stamp.sec % 1000}.{js.header.stamp.nanosec // 1_000_000:03d}  {joints}')
-
-    def wait_still(self, ns: str, drive: str, timeout_s: float, target: float | None = None):
-        deadline = time.monotonic() + timeout_s
-        last_print = 0.0
-        while time.monotonic() < deadline:
-            st = self.status(ns, drive)
-            if time.monotonic() - last_print > 0.25:
-                self.print_joints(ns)
-                last_print = time.monotonic()
-            if st.fault:
-                return st
-            if not st.moving and (target is None or abs(st.position - target) < 1e-3):
-                return st
-            time.sleep(0.02)
-        return self.status(ns, drive)
-
-    def run_drive(self, ns: str, drive: str, spec: dict) -> None:
-        base = f'{ns}/{drive}'
-        self.say(f'[{drive}] enable')
-        self.service(SetBool, base + '/enable', SetBool.Request(data=True))
-        self.say(f'[{drive}] home')
-        self.service(Trigger, base + '/home')
+    def run_drive(self, label: str, spec: dict) -> None:
+        self.say(f'[{label}] enable')
+        if not self.service(label, SetBool, 'enable', SetBool.Request(data=True)):
+            return
+        t = time.monotonic()
+        self.service(label, Trigger, 'home')
+        self.phase(label, 'home', t, time.monotonic())
         for target in spec['targets']:
-            self.say(f'[{drive}] move to {target:+.3f} rad')
-            self.ros.publish(Float64, base + '/position_command', Float64(data=target))
-            st = self.wait_still(ns, drive, 20.0, target)
-            self.check(abs(st.position - target) < 1e-3 and not st.fault,
-                       f'{drive} at {st.position:.4f}, expected {target}')
+            self.say(f'[{label}] move to {target:+.3f} rad')
+            self.commanded(label, target)
+            self.ros.publish(Float64, f'/{label}/position_command', Float64(data=target))
+            st = self.wait_status(label, lambda m, t=target: m.fault or (
+                not m.moving and abs(m.position - t) < POSITION_TOLERANCE), 20.0,
+                f'position {target:+.3f}')
+            if st is not None:
+                self.check(abs(st.position - target) < POSITION_TOLERANCE and not st.fault,
+                           f'{label} at {st.position:.4f}, expected {target}')
         v = spec['velocity']
-        self.say(f'[{drive}] velocity {v} rad/s for 1 s, then no more commands: the watchdog stops it')
-        t_end = time.monotonic() + 1.0
-        while time.monotonic() < t_end:
-            self.ros.publish(Float64, base + '/velocity_command', Float64(data=v))
-            self.print_joints(ns)
-            time.sleep(0.1)  # command rate of this demo: 10 Hz
-        st = self.wait_still(ns, drive, 10.0)
-        self.check(not st.moving and not st.fault, f'{drive} still moving after the watchdog')
-        self.say(f'[{drive}] stopped by the watchdog at {st.position:+.3f} rad; disable')
-        self.service(SetBool, base + '/enable', SetBool.Request(data=False))
+        self.say(f'[{label}] velocity {v} rad/s for {VELOCITY_RUN_S:g} s, then no more '
+                 'commands: the node watchdog stops it')
+        self.commanded(label, math.nan)
+        t = time.monotonic()
+        while time.monotonic() < t + VELOCITY_RUN_S:
+            self.ros.publish(Float64, f'/{label}/velocity_command', Float64(data=v))
+            time.sleep(VELOCITY_COMMAND_PERIOD_S)  # the command rate of this demo
+        st = self.wait_status(label, lambda m: m.fault or not m.moving, 10.0,
+                              'standstill after the watchdog')
+        self.phase(label, 'velocity', t, time.monotonic())
+        if st is not None and self.check(not st.moving and not st.fault,
+                                         f'{label} still moving after the watchdog'):
+            self.say(f'[{label}] stopped by the watchdog at {st.position:+.3f} rad; disable')
+        self.service(label, SetBool, 'enable', SetBool.Request(data=False))
+
+    def run_vendor(self, vendor: str, spec: dict) -> None:
+        t = time.monotonic()
+        try:
+            ns, drives = self.start(vendor, spec)
+            threads = [threading.Thread(target=self.guard, args=(self.run_drive, f'{ns[1:]}/{d}',
+                                                                 spec), daemon=True)
+                       for d in drives]
+            for th in threads:
+                th.start()
+            for th in threads:
+                th.join(max(self.deadline - time.monotonic(), 0.1))
+        except (AssertionError, FileNotFoundError) as e:
+            self.check(False, f'{vendor}: {e}')
+        self.say(f'[{vendor}] done in {time.monotonic() - t:.1f} s')
+
+    def guard(self, fn, *args) -> None:
+        try:
+            fn(*args)
+        except Exception as e:  # noqa: BLE001 - a failed step must not hang the demo
+            self.check(False, f'{args[0]}: {type(e).__name__}: {e}')
 
     def stop_all(self) -> None:
-        for p in reversed(self.procs):
+        with self.lock:
+            procs = list(reversed(self.procs))
+            self.procs.clear()
+        nodes = [p for p in procs if p.name.endswith('_node')]
+        others = [p for p in procs if not p.name.endswith('_node')]
+        for group in (nodes, others):          # nodes first: they stop and disable the drives
+            stoppers = [threading.Thread(target=self._stop_one, args=(p,)) for p in group]
+            for th in stoppers:
+                th.start()
+            for th in stoppers:
+                th.join()
+
+    def _stop_one(self, p: Proc) -> None:
+        try:
             code = p.stop()
-            self.check(code == 0, f'{p.name} exit code {code}')
-        self.procs.clear()
+        except AssertionError as e:
+            self.check(False, str(e).splitlines()[0])
+            return
+        self.check(code == 0, f'{p.name} exit code {code}')
+
+
+# ---------------------------------------------------------------------------------- the plot
+def plot(demo: Demo, path: pathlib.Path) -> None:
+    """Commanded (dashed steps) and actual (solid) position of every drive over time."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+
+    labels = demo.drive_labels()
+    cols = 3
+    rows = max(1, math.ceil(len(labels) / cols))
+    fig, axes = plt.subplots(rows, cols, figsize=(5.2 * cols, 3.2 * rows), squeeze=False,
+                             sharex=True)
+    t_end = time.monotonic() - demo.t0
+    for ax, label in zip(axes.flat, labels):
+        d = demo.drives[label]
+        t = [r - demo.t0 for r, _m in d['status']]
+        pos = [m.position for _r, m in d['status']]
+        joint = d['status'][-1][1].joint_name if d['status'] else ''
+        ax.plot(t, pos, '-', color='tab:blue', lw=1.4, label='actual (status)')
+        if d['commands']:
+            ct = [c - demo.t0 for c, _p in d['commands']] + [t_end]
+            cp = [p for _c, p in d['commands']] + [d['commands'][-1][1]]
+            ax.step(ct, cp, where='post', ls='--', color='tab:red', lw=1.2,
+                    label='commanded position')
+        for name, start, end in d['phases']:
+            color = 'tab:gray' if name == 'home' else 'tab:orange'
+            text = 'homing' if name == 'home' else 'velocity run, watchdog stop'
+            ax.axvspan(start - demo.t0, end - demo.t0, color=color, alpha=0.18, label=text)
+        ax.set_title(f"{d['vendor']}: {label} ({joint})", fontsize=9)
+        ax.set_ylabel('position [rad]', fontsize=8)
+        ax.tick_params(labelsize=7)
+        ax.grid(True, alpha=0.3)
+    for ax in axes.flat[len(labels):]:
+        ax.axis('off')
+    for ax in axes[-1]:
+        ax.set_xlabel('time since the demo started [s]', fontsize=8)
+    handles, names = axes.flat[0].get_legend_handles_labels()
+    seen = dict(zip(names, handles))
+    fig.suptitle('stepper_drivers demo: commanded vs actual position of every drive',
+                 fontsize=11)
+    fig.tight_layout(rect=(0, 0, 1, 1 - 0.6 / fig.get_figheight()))
+    fig.legend(seen.values(), seen.keys(), loc='upper center', ncol=4, fontsize=8,
+               frameon=False, bbox_to_anchor=(0.5, 1 - 0.3 / fig.get_figheight()))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('--vendor', action='append', choices=sorted(DEMOS),
                     help='run only this vendor (repeatable); default: all')
-    ap.add_argument('--verbose', action='store_true')
+    ap.add_argument('--sequential', action='store_true',
+                    help='one vendor after the other (slower; for a machine short of CPU)')
+    ap.add_argument('--plot', default=str(ROOT / 'out' / 'demo_positions.png'),
+                    help='where the plot goes (default out/demo_positions.png)')
     args = ap.parse_args()
+    for key, value in FAST_DISCOVERY.items():
+        os.environ.setdefault(key, value)
     log_dir = pathlib.Path(tempfile.mkdtemp(prefix='stepper_demo_'))
     ros = RosClient('stepper_demo')
-    demo = Demo(ros, log_dir, args.verbose)
+    demo = Demo(ros, log_dir)
+    vendors = args.vendor or list(DEMOS)
+    demo.say(f'starting {", ".join(vendors)} (simulators and nodes; logs in {log_dir})')
+    demo.console.start()
     try:
-        for vendor in args.vendor or DEMOS:
-            spec = DEMOS[vendor]
-            ns, drives = demo.start(vendor, spec)
-            for d in drives:
-                demo.run_drive(ns, d, spec)
-            demo.stop_all()
-    except (AssertionError, FileNotFoundError) as e:
-        demo.failures.append(str(e))
-        print(f'demo: {e}', file=sys.stderr)
+        runners = [threading.Thread(target=demo.run_vendor, args=(v, DEMOS[v]), daemon=True)
+                   for v in vendors]
+        for th in runners:
+            th.start()
+            if args.sequential:
+                th.join(max(demo.deadline - time.monotonic(), 0.1))
+        for th in runners:
+            th.join(max(demo.deadline - time.monotonic(), 0.1))
+            if th.is_alive():
+                demo.check(False, f'time limit of {DEMO_TIME_LIMIT_S:g} s reached')
+                break
+    except KeyboardInterrupt:
+        demo.check(False, 'interrupted')
     finally:
+        demo.console.stop()
+        demo.say('stopping every node (stop, disable) and simulator')
+        demo.stop_all()
         for p in demo.procs:
             p.kill()
-        ros.close()
+        ros.executor.shutdown(timeout_sec=2.0)     # spin thread first, then the node
+        ros.thread.join(timeout=5)
+        ros.node.destroy_node()
+        ros.rclpy.try_shutdown(context=ros.context)
+    plot_path = pathlib.Path(args.plot)
+    try:
+        plot(demo, plot_path)
+        print(f'plot of commanded vs actual position: {plot_path}', flush=True)
+    except Exception as e:  # noqa: BLE001 - the drives' result stands without the plot
+        demo.failures.append(f'plot: {type(e).__name__}: {e}')
+    took = time.monotonic() - demo.t0
     if demo.failures:
-        print(f'demo FAILED ({len(demo.failures)}): ' + '; '.join(demo.failures)
-              + f'\nprocess logs: {log_dir}', file=sys.stderr)
+        print(f'demo FAILED after {took:.0f} s ({len(demo.failures)}): '
+              + '; '.join(demo.failures) + f'\nprocess logs: {log_dir}', file=sys.stderr)
         return 1
-    print(f'demo OK: every drive enabled, homed, moved and stopped. Process logs: {log_dir}')
+    print(f'demo OK in {took:.0f} s: every drive enabled, homed, moved and stopped by its '
+          f'watchdog. Process logs: {log_dir}')
     return 0
 
 

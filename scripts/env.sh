@@ -15,6 +15,11 @@ if [ -d "$_stepper_root/.venv/bin" ]; then
 fi
 if [ -z "${STEPPER_NO_WORKSPACE:-}" ] && [ -f "$_stepper_root/install/local_setup.bash" ]; then
     source "$_stepper_root/install/local_setup.bash"
+    # stepperctl (and the node executables) as plain commands
+    export PATH="$_stepper_root/install/stepper_drivers/lib/stepper_drivers:$PATH"
 fi
+# Fast DDS announces a participant every 3 s and does not answer a newcomer at once, so a
+# short-lived client (stepperctl, a test) waits up to 3 s to see a node; this profile makes it 0.3 s.
+export FASTRTPS_DEFAULT_PROFILES_FILE=${FASTRTPS_DEFAULT_PROFILES_FILE:-$_stepper_root/config/fastdds_fast_discovery.xml}
 export PYTHONUNBUFFERED=1
 unset _stepper_root

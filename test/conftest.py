@@ -1,12 +1,16 @@
 """Workspace-level fixtures: loopback-only DDS, a private ROS domain, processes and a ROS client."""
 
 import os
+import pathlib
 import socket
 
 import pytest
 
 # Fast DDS discovery must not leave the machine (it multicasts on every interface otherwise).
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+# Announce participants every 0.3 s instead of 3 s: clients and nodes find each other sooner.
+os.environ.setdefault('FASTRTPS_DEFAULT_PROFILES_FILE', str(
+    pathlib.Path(__file__).resolve().parents[1] / 'config' / 'fastdds_fast_discovery.xml'))
 
 _domain_lock = None
 
