@@ -38,18 +38,10 @@ _reserve_domain()
 @pytest.fixture
 def procs(tmp_path):
     """Start processes with procs.start(name, args); all are stopped by PID at the end."""
-    from rosharness import Proc
-
-    class Procs(list):
-        def start(self, name, args, env=None):
-            p = Proc(args, tmp_path, name, env)
-            self.append(p)
-            return p
-
-    started = Procs()
+    from rosharness import Procs
+    started = Procs(tmp_path)
     yield started
-    for p in reversed(started):
-        p.kill()
+    started.kill_all()
 
 
 @pytest.fixture

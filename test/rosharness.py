@@ -1,5 +1,170 @@
-"""Test harness: the project's own process and ROS client helpers (see stepper_drivers.tools)."""
+"""Test harness: the project's own process and ROS client helpers (see stepper_drivers.tools),
+and `DriveBench`: a vendor's simulator and node processes, as every end-to-end test uses them.
+
+ROS message packages are imported where used, so this module imports without them.
+"""
+
+import signal
 
 from stepper_drivers.tools.client import RosClient  # noqa: F401
 from stepper_drivers.tools.processes import (CONFIG, INSTALL, ROOT, Proc, executable,  # noqa: F401
                                              free_port, wait_for)
+
+
+class Procs(list):
+    """Processes started for a test or a module, logs in log_dir; kill_all() ends them by PID,
+    the last started first."""
+
+    def __init__(self, log_dir):
+        super().__init__()
+        self.log_dir = log_dir
+
+    def start(self, name, args, env=None) -> Proc:
+        p = Proc(args, self.log_dir, name, env)
+        self.append(p)
+        return p
+
+    def kill_all(self) -> None:
+        for p in reversed(self):
+            p.kill()
+
+
+class DriveBench:
+    """A vendor's simulator and node as separate processes, and the ROS calls tests make on them.
+
+    A subclass names the vendor (executables `<vendor>_sim` and `<vendor>_node`, parameter files
+    config/<vendor>_sim.yaml and config/<vendor>.yaml), its drives and what connects node and
+    simulator (`link_args()`: a pty path, a TCP port, a CAN broker's port). The node reconnects
+    every 0.2 s; every drive is connected when the constructor returns.
+    """
+
+    vendor = ''
+    drives = ('axis1', 'axis2')
+    node_extra_args: tuple[str, ...] = ()     # node parameters after the link's
+    first_sim_args: tuple[str, ...] = ()      # simulator parameters of the first start only
+    keep_status = False                       # keep every DriveStatus in ros.history
+    connect_timeout_s = 30.0                  # process starts take seconds on a busy machine
+
+    def __init__(self, procs, ros, node_args=()):
+        from diagnostic_msgs.msg import DiagnosticArray
+        from sensor_msgs.msg import JointState
+        from std_msgs.msg import Float64
+        from stepper_drivers_msgs.msg import DriveStatus
+        self.procs, self.ros = procs, ros
+        self.node_ns, self.sim_ns = f'/{self.vendor}_node', f'/{self.vendor}_sim'
+        self.sim = None
+        self.start_sim(*self.first_sim_args)
+        self.node = procs.start('node', [
+            executable('stepper_drivers', f'{self.vendor}_node'), '--ros-args',
+            '--params-file', str(CONFIG / f'{self.vendor}.yaml'), *self.link_args(),
+            '-p', 'reconnect_period_s:=0.2', *self.node_extra_args, *node_args])
+        ros.subscribe(JointState, '/joint_states', keep=True)
+        ros.subscribe(DiagnosticArray, '/diagnostics')
+        for d in self.drives:
+            ros.subscribe(DriveStatus, f'{self.node_ns}/{d}/status', keep=self.keep_status)
+            ros.subscribe(Float64, self.true_topic(d))
+        for d in self.drives:
+            self.status(d, lambda m: m.connected, self.connect_timeout_s, f'{d} connected')
+
+    # ------------------------------------------------------------------ vendor specific
+    def link_args(self) -> list[str]:
+        """The parameters (for both processes) that put node and simulator on one link."""
+        raise NotImplementedError
+
+    def sim_args(self) -> list[str]:
+        """Further simulator parameters (storage folder, line timing)."""
+        return []
+
+    # ------------------------------------------------------------------------ processes
+    def start_sim(self, *extra_args):
+        """(Re)start the simulator and wait for its ready line; a restart forgets what the
+        previous simulator published."""
+        for d in self.drives:
+            with self.ros.lock:
+                self.ros.latest.pop(self.true_topic(d), None)
+        name = 'sim' if self.sim is None else f'sim{len(self.procs) + 1}'
+        self.sim = self.procs.start(name, [
+            executable('stepper_sim', f'{self.vendor}_sim'), '--ros-args',
+            '--params-file', str(CONFIG / f'{self.vendor}_sim.yaml'), *self.link_args(),
+            *self.sim_args(), *extra_args])
+        self.sim.wait_line('ready', 30.0)
+
+    def sigterm_while_running(self, velocity, drives=('axis1',)):
+        """Enable the drives, run them at `velocity` [rad/s], then SIGTERM the node: it must
+        end with exit code 0."""
+        for d in drives:
+            self.enable(d)
+            self.command(d, 'velocity_command', velocity)
+        for d in drives:
+            self.status(d, lambda m: m.moving, what=f'{d} running')
+        assert self.node.stop(signal.SIGTERM) == 0
+
+    # ------------------------------------------------------------------------------ ROS
+    def status(self, drive, cond=lambda m: True, timeout_s=10.0, what=''):
+        return self.ros.wait_msg(f'{self.node_ns}/{drive}/status', cond, timeout_s,
+                                 what or f'{drive} status')
+
+    def true_topic(self, drive):
+        return f'{self.sim_ns}/{drive}/true_position_steps'
+
+    def true_steps(self, drive):
+        """The simulator's position counter (the latest sample)."""
+        return self.ros.wait_msg(self.true_topic(drive)).data
+
+    def fresh_true_steps(self, drive):
+        """A true position published after this call (the topic runs at 20 Hz)."""
+        with self.ros.lock:
+            self.ros.latest.pop(self.true_topic(drive), None)
+        return self.ros.wait_msg(self.true_topic(drive)).data
+
+    def call(self, drive, name, request=None, srv=None, timeout_s=30.0):
+        """A service of one drive (default type std_srvs/Trigger)."""
+        if srv is None:
+            from std_srvs.srv import Trigger as srv
+        return self.ros.call(srv, f'{self.node_ns}/{drive}/{name}', request, timeout_s)
+
+    def enable(self, drive, on=True):
+        from std_srvs.srv import SetBool
+        r = self.call(drive, 'enable', SetBool.Request(data=on), SetBool)
+        assert r.success, r.message
+        return r
+
+    def inject(self, drive, kind, code=0, value=0.0):
+        """The simulator's ~/inject_fault; it must accept the fault."""
+        from stepper_drivers_msgs.srv import InjectFault
+        r = self.ros.call(InjectFault, self.sim_ns + '/inject_fault',
+                          InjectFault.Request(drive=drive, kind=kind, code=code, value=value))
+        assert r.success, r.message
+        return r
+
+    def command(self, drive, topic, value):
+        from std_msgs.msg import Float64
+        self.ros.publish(Float64, f'{self.node_ns}/{drive}/{topic}', Float64(data=value))
+
+    def set_params(self, *params):
+        """Set node parameters ((name, value), ...: floats as double, else integer); returns
+        the SetParameters results."""
+        from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+        from rcl_interfaces.srv import SetParameters
+        req = SetParameters.Request()
+        for name, value in params:
+            v = ParameterValue()
+            if isinstance(value, float):
+                v.type, v.double_value = ParameterType.PARAMETER_DOUBLE, value
+            else:
+                v.type, v.integer_value = ParameterType.PARAMETER_INTEGER, value
+            req.parameters.append(Parameter(name=name, value=v))
+        return self.ros.call(SetParameters, self.node_ns + '/set_parameters', req).results
+
+
+def bad_parameter_output(procs, tmp_path, vendor, old, new, timeout_s=20.0) -> list[str]:
+    """Start `<vendor>_node` on config/<vendor>.yaml with `old` replaced by `new`; it must end
+    with exit code 2 (a bad parameter) within timeout_s. Returns its output lines."""
+    text = (CONFIG / f'{vendor}.yaml').read_text()
+    assert old in text, f'{old!r} is not in config/{vendor}.yaml'
+    f = tmp_path / 'bad.yaml'
+    f.write_text(text.replace(old, new))
+    p = procs.start('bad', [executable('stepper_drivers', f'{vendor}_node'), '--ros-args',
+                            '--params-file', str(f)])
+    assert p.proc.wait(timeout=timeout_s) == 2
+    return p.output().strip().splitlines()

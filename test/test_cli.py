@@ -92,7 +92,7 @@ def test_list_shows_every_drive_with_its_state(rig):
     assert out.splitlines()[0].split()[:3] == ['DRIVE', 'VENDOR', 'ADDR']
     rows = [line for line in out.splitlines() if line.startswith('xplus_mt_node/')]
     assert len(rows) == 2
-    for row, joint in zip(rows, ('joint1', 'joint2')):
+    for row, joint in zip(rows, ('xplus_joint1', 'xplus_joint2')):
         assert 'X-PLUS MT' in row and joint in row and 'SWITCH ON DISABLED' in row
     data = json.loads(ok(ctl('list', '--json')))
     assert {d['drive'] for d in data} == {AXIS1, AXIS2}
@@ -127,7 +127,8 @@ def test_move_needs_enable_then_reaches_target(rig):
 
 
 def test_move_timeout_stops_the_drive(rig):
-    r = ctl('move', 'joint1', '-50', '--timeout', '0.4')   # by joint name; 52 rad at 12 rad/s
+    # by joint name; 52 rad at 12 rad/s
+    r = ctl('move', 'xplus_joint1', '-50', '--timeout', '0.4')
     fails(r, 4, 'not reached within 0.4 s', 'drive stopped')
     st = rig.status('axis1', lambda m: not m.moving, what='axis1 stopped after the timeout')
     assert -40.0 < st.position < 2.5 and st.enabled

@@ -7,74 +7,45 @@ serial client play the part of the real world.
 
 import json
 import math
-import signal
 
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from diagnostic_msgs.msg import DiagnosticStatus
 import pytest
-from rosharness import CONFIG, executable, wait_for
-from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64
-from std_srvs.srv import SetBool, Trigger
+from rosharness import DriveBench, bad_parameter_output, wait_for
+from std_srvs.srv import SetBool
 from stepper_drivers_msgs.msg import DriveStatus
-from stepper_drivers_msgs.srv import InjectFault, ReadRegister, WriteRegister
+from stepper_drivers_msgs.srv import ReadRegister, WriteRegister
 
 NODE = '/rd4_node'
-SIM = '/rd4_sim'
 STEPS_PER_RAD = 1024 / (2 * math.pi)       # Distance per revolution [0x00] = 1024
 
 
-class Bench:
+class Bench(DriveBench):
     """The simulator on a fresh pty and the node on its symlink, plus ROS helpers."""
 
+    vendor = 'rd4'
+    node_extra_args = (
+        '-p', 'publish_rate_hz:=20.0',
+        # the simulator is a Python process on a shared 2-core machine: a reply can be later
+        # than the 0.1 s a real line needs (config/rd4.yaml), and no test is about that
+        '-p', 'timeout_s:=0.3')
+
     def __init__(self, procs, ros, tmp_path, node_args=()):
-        self.procs, self.ros, self.tmp = procs, ros, tmp_path
         self.port = str(tmp_path / 'rd4.pty')
         self.storage = tmp_path / 'flash'
-        self.sim = procs.start('sim', [
-            executable('stepper_sim', 'rd4_sim'), '--ros-args',
-            '--params-file', str(CONFIG / 'rd4_sim.yaml'), '-p', f'port:={self.port}',
-            '-p', f'storage_dir:={self.storage}'])
-        self.sim.wait_line('ready', 30.0)
-        self.node = procs.start('node', [
-            executable('stepper_drivers', 'rd4_node'), '--ros-args',
-            '--params-file', str(CONFIG / 'rd4.yaml'), '-p', f'port:={self.port}',
-            '-p', 'reconnect_period_s:=0.2', '-p', 'publish_rate_hz:=20.0',
-            # the simulator is a Python process on a shared 2-core machine: a reply can be later
-            # than the 0.1 s a real line needs (config/rd4.yaml), and no test is about that
-            '-p', 'timeout_s:=0.3', *node_args])
-        ros.subscribe(JointState, '/joint_states')
-        ros.subscribe(DiagnosticArray, '/diagnostics')
-        for d in ('axis1', 'axis2'):
-            ros.subscribe(DriveStatus, f'{NODE}/{d}/status')
-            ros.subscribe(Float64, f'{SIM}/{d}/true_position_steps')
-            self.status(d, lambda m: m.connected, timeout_s=30.0, what=f'{d} connected')
+        super().__init__(procs, ros, node_args)
 
-    def status(self, drive, cond=lambda m: True, timeout_s=10.0, what=''):
-        return self.ros.wait_msg(f'{NODE}/{drive}/status', cond, timeout_s,
-                                 what or f'{drive} status')
+    def link_args(self):
+        return ['-p', f'port:={self.port}']
+
+    def sim_args(self):
+        return ['-p', f'storage_dir:={self.storage}']
 
     def true_steps(self, drive, steps=None):
         """The simulated unit's position counter (rounded as Current position reports it);
         with `steps`: wait until it reads that (the topic lags the status by up to 50 ms)."""
         cond = (lambda m: True) if steps is None else (lambda m: round(m.data) == steps)
-        return round(self.ros.wait_msg(f'{SIM}/{drive}/true_position_steps', cond,
+        return round(self.ros.wait_msg(self.true_topic(drive), cond,
                                        what=f'{drive} true position {steps}').data)
-
-    def call(self, drive, name, request=None, srv=Trigger, timeout_s=30.0):
-        return self.ros.call(srv, f'{NODE}/{drive}/{name}', request, timeout_s)
-
-    def enable(self, drive, on=True):
-        r = self.call(drive, 'enable', SetBool.Request(data=on), SetBool)
-        assert r.success, r.message
-        return r
-
-    def inject(self, kind, drive='axis1', code=0, value=0.0):
-        r = self.ros.call(InjectFault, SIM + '/inject_fault',
-                          InjectFault.Request(drive=drive, kind=kind, code=code, value=value))
-        assert r.success, r.message
-
-    def command(self, drive, topic, value):
-        self.ros.publish(Float64, f'{NODE}/{drive}/{topic}', Float64(data=value))
 
     def link_values(self):
         diag = self.ros.wait_msg('/diagnostics', lambda a: any(
@@ -87,7 +58,8 @@ class Bench:
         last = [None]
 
         def still():
-            now = self.ros.wait_msg(f'{SIM}/{drive}/true_position_steps').data
+            self.ros.latest.pop(self.true_topic(drive), None)   # a fresh sample each time
+            now = self.ros.wait_msg(self.true_topic(drive)).data
             same, last[0] = now == last[0], now
             return same
         wait_for(still, 10.0, f'{drive} at rest', period_s)
@@ -112,7 +84,7 @@ def test_two_units_start_safe_and_enable_does_not_move(bench):
     assert bench.true_steps('axis1') == before
     assert bench.status('axis2').state == 'SWITCH ON DISABLED'
     js = bench.ros.wait_msg('/joint_states')
-    assert list(js.name) == ['joint1', 'joint2'] and js.header.stamp.sec > 0
+    assert list(js.name) == ['rd4_joint1', 'rd4_joint2'] and js.header.stamp.sec > 0
     assert len(js.effort) == 2            # Current value [0x07] in A
 
 
@@ -154,7 +126,7 @@ def test_home_is_a_preset(bench):
 
 def test_alarm_shows_the_manuals_text_and_only_fault_reset_clears_it(bench):
     bench.enable('axis1')
-    bench.inject('drive_fault', code=0x0100)      # Overtemperature (§8.1.2 alarm bit 8)
+    bench.inject('axis1', 'drive_fault', code=0x0100)   # Overtemperature (§8.1.2 alarm bit 8)
     st = bench.status('axis1', lambda m: m.fault, what='fault in status')
     assert st.state == 'FAULT' and st.fault_code == 0x0140      # + Emergency (bit 6)
     assert 'Overtemperature' in st.fault_text and 'exceeding maximum ratings' in st.fault_text
@@ -167,7 +139,7 @@ def test_alarm_shows_the_manuals_text_and_only_fault_reset_clears_it(bench):
     assert 'fault_reset' in st.last_refusal
     r = bench.call('axis1', 'fault_reset')
     assert not r.success and 'Overtemperature' in r.message
-    bench.inject('clear_fault')
+    bench.inject('axis1', 'clear_fault')
     r = bench.call('axis1', 'fault_reset')
     assert r.success, r.message
     st = bench.status('axis1', lambda m: not m.fault)
@@ -202,13 +174,13 @@ def test_pty_closed_and_reopened_reconnects_without_motion(bench):
     bench.enable('axis1')
     bench.command('axis1', 'velocity_command', 5.0)
     bench.status('axis1', lambda m: m.moving, what='jogging')
-    bench.inject('cut')
+    bench.inject('axis1', 'cut')
     st = bench.status('axis1', lambda m: m.state == 'DISCONNECTED', what='DISCONNECTED')
     assert not st.connected
     bench.ros.wait_msg('/diagnostics', lambda a: any(
         s.name.endswith('link') and s.level == DiagnosticStatus.ERROR for s in a.status))
     stopped_at = bench.settled('axis1')        # the unit's own watchdog stopped the jog (1 s)
-    bench.inject('link_ok')
+    bench.inject('axis1', 'link_ok')
     st = bench.status('axis1', lambda m: m.connected, timeout_s=15.0, what='reconnected')
     st = bench.status('axis1', lambda m: m.link_reconnects >= 1)
     assert st.state == 'FAULT' and 'Watch dog' in st.fault_text and not st.moving
@@ -222,7 +194,7 @@ def test_pty_closed_and_reopened_reconnects_without_motion(bench):
 def test_crc_corrupt_replies_are_counted_and_survived(bench):
     before = int(bench.link_values()['crc_errors'])
     for i in range(3):
-        bench.inject('corrupt_reply', code=1)        # the next reply only: the retry is good
+        bench.inject('axis1', 'corrupt_reply', code=1)   # the next reply only: the retry is good
         wait_for(lambda: int(bench.link_values()['crc_errors']) >= before + i + 1, 10.0,
                  f'CRC error {i + 1} counted')
     values = bench.link_values()
@@ -233,10 +205,7 @@ def test_crc_corrupt_replies_are_counted_and_survived(bench):
 
 def test_sigterm_stops_disables_and_leaves_the_watchdog_off(bench):
     import serial
-    bench.enable('axis1')
-    bench.command('axis1', 'velocity_command', 5.0)
-    bench.status('axis1', lambda m: m.moving, what='jogging')
-    assert bench.node.stop(signal.SIGTERM) == 0
+    bench.sigterm_while_running(5.0)
     bench.settled('axis1')
     # The line is free now: ask the unit itself (manual frame: FC03 Control Word)
     port = serial.Serial(bench.port, 19200, parity='N', stopbits=2, timeout=1.0)
@@ -250,13 +219,7 @@ def test_sigterm_stops_disables_and_leaves_the_watchdog_off(bench):
 
 
 def test_bad_parameter_fails_start_up_with_one_line(procs, tmp_path):
-    text = (CONFIG / 'rd4.yaml').read_text().replace('node_id: 2', 'node_id: 300')
-    f = tmp_path / 'bad.yaml'
-    f.write_text(text)
-    p = procs.start('bad', [executable('stepper_drivers', 'rd4_node'), '--ros-args',
-                            '--params-file', str(f)])
-    assert p.proc.wait(timeout=20) == 2
-    out = p.output().strip().splitlines()
+    out = bad_parameter_output(procs, tmp_path, 'rd4', 'node_id: 2', 'node_id: 300')
     assert out[-1] == ('rd4_node: parameter drives.axis2.node_id: 300 is out of range '
                        '(allowed: an integer from 1 to 247)'), out
 

@@ -8,90 +8,47 @@ fault; the last test stops and restarts the simulator and finally the node.
 """
 
 import math
-import signal
 import time
 
 import can
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from diagnostic_msgs.msg import DiagnosticStatus
 import pytest
-from rosharness import CONFIG, Proc, RosClient, executable, wait_for
-from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64
-from std_srvs.srv import SetBool, Trigger
+from rosharness import DriveBench, Procs, RosClient, bad_parameter_output, wait_for
+from std_srvs.srv import SetBool
 from stepper_drivers.protocol.socketcand_broker import SocketcandBroker
-from stepper_drivers_msgs.msg import DriveStatus
-from stepper_drivers_msgs.srv import InjectFault, ReadRegister, WriteRegister
+from stepper_drivers_msgs.srv import ReadRegister, WriteRegister
 
-NODE = '/vector_step_node'
-SIM = '/vector_step_sim'
 STEPS_PER_RAD = 3200 / (2 * math.pi)
 
 
-class Rig:
+class Rig(DriveBench):
     """Broker, simulator and node for the module, plus helpers to reach them through ROS."""
 
+    vendor = 'vector_step'
+    first_sim_args = ('-p', 'drives.axis2.power_stage_blocked:=true')
+
     def __init__(self, log_dir):
-        self.log_dir = log_dir
         self.storage = log_dir / 'eeprom'
         self.storage.mkdir()
         self.broker = SocketcandBroker(port=0)
         self.broker.start()
-        self.ros = RosClient('vector_step_test')
-        self.procs: list[Proc] = []
-        self.start_sim(blocked=True)
-        self.node = self.start('node', [
-            executable('stepper_drivers', 'vector_step_node'), '--ros-args',
-            '--params-file', str(CONFIG / 'vector_step.yaml'),
-            '-p', f'can.port:={self.broker.port}', '-p', 'reconnect_period_s:=0.2'])
-        self.ros.subscribe(JointState, '/joint_states', keep=True)
-        self.ros.subscribe(DiagnosticArray, '/diagnostics')
-        for d in ('axis1', 'axis2'):
-            self.ros.subscribe(DriveStatus, f'{NODE}/{d}/status')
-            self.ros.subscribe(Float64, f'{SIM}/{d}/true_position_steps')
-            self.status(d, lambda m: m.connected, 30.0, f'{d} connected')
+        self.procs, self.ros = Procs(log_dir), RosClient('vector_step_test')
+        try:
+            super().__init__(self.procs, self.ros)
+        except BaseException:
+            self.close()            # a failed start leaves no process, client or broker behind
+            raise
 
-    def start(self, name, args):
-        proc = Proc(args, self.log_dir, name)
-        self.procs.append(proc)
-        return proc
+    def link_args(self):
+        return ['-p', f'can.port:={self.broker.port}']
 
-    def start_sim(self, blocked=False):
-        args = [executable('stepper_sim', 'vector_step_sim'), '--ros-args',
-                '--params-file', str(CONFIG / 'vector_step_sim.yaml'),
-                '-p', f'can.port:={self.broker.port}', '-p', f'storage_dir:={self.storage}']
-        if blocked:
-            args += ['-p', 'drives.axis2.power_stage_blocked:=true']
-        self.sim = self.start(f'sim{len(self.procs)}', args)
-        self.sim.wait_line('ready', 30.0)
+    def sim_args(self):
+        return ['-p', f'storage_dir:={self.storage}']
 
     def close(self):
-        for proc in reversed(self.procs):
-            proc.kill()
+        self.procs.kill_all()
         self.ros.close()
         self.broker.stop()
-
-    def status(self, drive, cond=lambda m: True, timeout_s=10.0, what=''):
-        return self.ros.wait_msg(f'{NODE}/{drive}/status', cond, timeout_s,
-                                 what or f'{drive} status')
-
-    def true_steps(self, drive):
-        return self.ros.wait_msg(f'{SIM}/{drive}/true_position_steps').data
-
-    def call(self, drive, name, request=None, srv=Trigger, timeout_s=30.0):
-        return self.ros.call(srv, f'{NODE}/{drive}/{name}', request, timeout_s)
-
-    def enable(self, drive, on=True):
-        r = self.call(drive, 'enable', SetBool.Request(data=on), SetBool)
-        assert r.success, r.message
-        return r
-
-    def inject(self, drive, kind, code=0, value=0.0):
-        r = self.ros.call(InjectFault, SIM + '/inject_fault',
-                          InjectFault.Request(drive=drive, kind=kind, code=code, value=value))
-        assert r.success, r.message
-
-    def command(self, drive, topic, value):
-        self.ros.publish(Float64, f'{NODE}/{drive}/{topic}', Float64(data=value))
 
     def read(self, drive, address, data_type):
         return self.call(drive, 'read_register',
@@ -132,7 +89,7 @@ def test_two_drives_start_safe_and_a_blocked_power_stage_is_reported(rig):
               for kv in s.values}
     assert values['product_code'].endswith('(SMD5006)') and values['node_id'] == '2'
     js = rig.ros.wait_msg('/joint_states')
-    assert list(js.name) == ['joint1', 'joint2'] and js.header.stamp.sec > 0
+    assert list(js.name) == ['vector_joint1', 'vector_joint2'] and js.header.stamp.sec > 0
     # axis2's power stage is blocked (STO): start-up worked, enable says why it cannot
     r = rig.call('axis2', 'enable', SetBool.Request(data=True), SetBool)
     assert not r.success
@@ -284,23 +241,12 @@ def test_heartbeat_loss_restart_recovery_and_shutdown(rig):
     assert rig.true_steps('axis1') == pytest.approx(before)
     assert rig.read('axis1', '0x2020:1', 'u32').value == 170001  # saved before the restart
     # SIGTERM: stop, disable, close; the drive stays disabled
-    rig.enable('axis1')
-    rig.command('axis1', 'velocity_command', 2.0)
-    rig.status('axis1', lambda m: m.moving, what='jogging again')
-    assert rig.node.stop(signal.SIGTERM) == 0
+    rig.sigterm_while_running(2.0)
     assert sdo_statusword(rig.broker.port, 1) & 0x4F == 0x40     # SWITCH ON DISABLED
 
 
-def test_bad_parameter_fails_start_up_with_one_line(tmp_path):
-    text = (CONFIG / 'vector_step.yaml').read_text().replace('node_id: 2', 'node_id: 300')
-    f = tmp_path / 'bad.yaml'
-    f.write_text(text)
-    p = Proc([executable('stepper_drivers', 'vector_step_node'), '--ros-args',
-              '--params-file', str(f)], tmp_path, 'bad')
-    try:
-        assert p.proc.wait(timeout=30) == 2
-    finally:
-        p.kill()
-    out = p.output().strip().splitlines()
+def test_bad_parameter_fails_start_up_with_one_line(procs, tmp_path):
+    out = bad_parameter_output(procs, tmp_path, 'vector_step', 'node_id: 2', 'node_id: 300',
+                               timeout_s=30.0)
     assert out[-1] == ('vector_step_node: parameter drives.axis2.node_id: 300 is out of range '
                        '(allowed: an integer from 1 to 127)'), out

@@ -6,92 +6,42 @@ timing is off except where the test is about it (it makes a 9600 baud line 20x s
 """
 
 import math
-import signal
 
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from diagnostic_msgs.msg import DiagnosticStatus
 import pytest
-from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
-from rcl_interfaces.srv import SetParameters
-from rosharness import CONFIG, executable, wait_for
-from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64
-from std_srvs.srv import SetBool, Trigger
-from stepper_drivers_msgs.msg import DriveStatus
-from stepper_drivers_msgs.srv import InjectFault, ReadRegister, WriteRegister
+from rosharness import DriveBench, bad_parameter_output, wait_for
+from stepper_drivers_msgs.srv import ReadRegister, WriteRegister
 
 NODE = '/xmind_k_node'
-SIM = '/xmind_k_sim'
 STEPS_PER_RAD = 2000 / (2 * math.pi)
 DRIVES = ('axis1', 'axis2', 'axis3')
 
 
-class Bench:
+class Bench(DriveBench):
     """A simulator and a node on a private pty symlink, plus helpers to reach them via ROS."""
 
+    vendor = 'xmind_k'
+    drives = DRIVES
+    node_extra_args = (
+        '-p', 'publish_rate_hz:=20.0',
+        '-p', 'timeout_s:=0.25',        # generous: the simulator shares 2 busy cores
+        *[a for d in DRIVES for a in ('-p', f'drives.{d}.busy_poll_period_s:=0.05')])
+    keep_status = True
+
     def __init__(self, procs, ros, tmp_path, line_timing=False, node_args=()):
-        self.procs, self.ros, self.tmp = procs, ros, tmp_path
         self.link = str(tmp_path / 'xmind_k.tty')
         self.line_timing = line_timing
-        self.start_sim()
-        self.node = procs.start('node', [
-            executable('stepper_drivers', 'xmind_k_node'), '--ros-args',
-            '--params-file', str(CONFIG / 'xmind_k.yaml'), '-p', f'port:={self.link}',
-            '-p', 'reconnect_period_s:=0.2', '-p', 'publish_rate_hz:=20.0',
-            '-p', 'timeout_s:=0.25',        # generous: the simulator shares 2 busy cores
-            *[a for d in DRIVES for a in ('-p', f'drives.{d}.busy_poll_period_s:=0.05')],
-            *node_args])
-        ros.subscribe(JointState, '/joint_states', keep=True)
-        ros.subscribe(DiagnosticArray, '/diagnostics')
-        for d in DRIVES:
-            ros.subscribe(DriveStatus, f'{NODE}/{d}/status', keep=True)
-            ros.subscribe(Float64, f'{SIM}/{d}/true_position_steps')
-        for d in DRIVES:
-            self.status(d, lambda m: m.connected, timeout_s=20.0, what=f'{d} connected')
+        super().__init__(procs, ros, node_args)
 
-    def start_sim(self):
-        self.sim = self.procs.start('sim', [
-            executable('stepper_sim', 'xmind_k_sim'), '--ros-args',
-            '--params-file', str(CONFIG / 'xmind_k_sim.yaml'), '-p', f'port:={self.link}',
-            '-p', f'line_timing:={str(self.line_timing).lower()}'])
-        self.sim.wait_line('ready', 30.0)
+    def link_args(self):
+        return ['-p', f'port:={self.link}']
 
-    def status(self, drive, cond=lambda m: True, timeout_s=10.0, what=''):
-        return self.ros.wait_msg(f'{NODE}/{drive}/status', cond, timeout_s,
-                                 what or f'{drive} status')
-
-    def true_steps(self, drive):
-        return self.ros.wait_msg(f'{SIM}/{drive}/true_position_steps').data
-
-    def fresh_true_steps(self, drive):
-        """A true position published after this call (the topic runs at 20 Hz)."""
-        topic = f'{SIM}/{drive}/true_position_steps'
-        with self.ros.lock:
-            self.ros.latest.pop(topic, None)
-        return self.ros.wait_msg(topic).data
-
-    def call(self, drive, name, request=None, srv=Trigger, timeout_s=30.0):
-        return self.ros.call(srv, f'{NODE}/{drive}/{name}', request, timeout_s)
-
-    def enable(self, drive, on=True):
-        r = self.call(drive, 'enable', SetBool.Request(data=on), SetBool)
-        assert r.success, r.message
-        return r
-
-    def inject(self, drive, kind, code=0, value=0.0):
-        r = self.ros.call(InjectFault, SIM + '/inject_fault',
-                          InjectFault.Request(drive=drive, kind=kind, code=code, value=value))
-        assert r.success, r.message
-        return r
-
-    def command(self, drive, topic, value):
-        self.ros.publish(Float64, f'{NODE}/{drive}/{topic}', Float64(data=value))
+    def sim_args(self):
+        return ['-p', f'line_timing:={str(self.line_timing).lower()}']
 
     def set_param(self, name, value):
-        p = Parameter(name=name, value=ParameterValue(type=ParameterType.PARAMETER_DOUBLE,
-                                                      double_value=float(value)))
-        r = self.ros.call(SetParameters, NODE + '/set_parameters',
-                          SetParameters.Request(parameters=[p]))
-        assert r.results[0].successful, r.results[0].reason
+        (r,) = self.set_params((name, float(value)))
+        assert r.successful, r.reason
 
 
 @pytest.fixture
@@ -134,7 +84,7 @@ def test_three_drives_move_home_with_line_timing_and_busy_silence(procs, ros, tm
     r = b.call('axis2', 'home')
     assert r.success, r.message
     js = ros.wait_msg('/joint_states')
-    assert list(js.name) == ['joint1', 'joint2', 'joint3']
+    assert list(js.name) == ['xmind_joint1', 'xmind_joint2', 'xmind_joint3']
     assert all(math.isnan(v) for v in js.velocity), 'X-MIND K has no velocity readback'
 
 
@@ -209,12 +159,21 @@ def test_pty_cut_and_restored_reconnects_and_stays_stopped(bench):
 def test_garbled_and_lost_replies_are_survived(bench):
     bench.enable('axis2')
     before = bench.status('axis2')
-    # inject while the drives are idle: every poll then expects an answer, so each bad one
-    # counts (while a drive is busy its silence is normal and is not an error)
+    # One fault at a time (the simulated line holds one), injected while the drives are idle so
+    # that every poll expects an answer: garbled answers count as link errors, a lost answer as
+    # a silence (a busy drive is silent too, so silence alone is no error).
     bench.inject('', 'corrupt_reply', code=3)
+    bench.status('axis2', lambda m: m.link_errors >= before.link_errors + 3, timeout_s=15.0,
+                 what='3 garbled replies counted')
+
+    def silences():
+        diag = bench.ros.wait_msg('/diagnostics', lambda a: any(
+            s.name.endswith('link') for s in a.status))
+        (link,) = [s for s in diag.status if s.name.endswith('link')]
+        return int({kv.key: kv.value for kv in link.values}['silences'])
+    silent = silences()
     bench.inject('', 'no_reply', code=1)
-    bench.status('axis2', lambda m: m.link_errors > before.link_errors, timeout_s=15.0,
-                 what='bad replies counted')
+    wait_for(lambda: silences() > silent, 15.0, 'the lost reply counted as a silence')
     bench.command('axis2', 'position_command', -2.0)
     bench.status('axis2', lambda m: not m.moving and m.position_steps == -637,
                  timeout_s=15.0, what='axis2 at -2 rad')
@@ -257,12 +216,7 @@ def test_fault_reset_refused_power_cycle_and_save_params(bench):
 
 
 def test_sigterm_stops_and_disables_every_drive(bench):
-    for d in ('axis1', 'axis2'):
-        bench.enable(d)
-        bench.command(d, 'velocity_command', 20.0)      # ramped free runs (32)
-    for d in ('axis1', 'axis2'):
-        bench.status(d, lambda m: m.moving, what=f'{d} running')
-    assert bench.node.stop(signal.SIGTERM) == 0
+    bench.sigterm_while_running(20.0, ('axis1', 'axis2'))      # ramped free runs (32)
     p = {d: bench.fresh_true_steps(d) for d in ('axis1', 'axis2')}
     assert all(bench.fresh_true_steps(d) == p[d] for d in p), 'still moving after shutdown'
     # CY/CN cannot be read back over the line: the simulator logs the current
@@ -272,12 +226,6 @@ def test_sigterm_stops_and_disables_every_drive(bench):
 
 
 def test_bad_parameter_fails_start_up_with_one_line(procs, tmp_path):
-    text = (CONFIG / 'xmind_k.yaml').read_text().replace('method: -3 ', 'method: 35 ')
-    f = tmp_path / 'bad.yaml'
-    f.write_text(text)
-    p = procs.start('bad', [executable('stepper_drivers', 'xmind_k_node'), '--ros-args',
-                            '--params-file', str(f)])
-    assert p.proc.wait(timeout=20) == 2
-    last = p.output().strip().splitlines()[-1]
+    last = bad_parameter_output(procs, tmp_path, 'xmind_k', 'method: -3 ', 'method: 35 ')[-1]
     assert last.startswith('xmind_k_node: parameter drives.axis2.homing.method: 35 is not an '
                            'X-MIND K method (allowed: 3 = zero search'), last

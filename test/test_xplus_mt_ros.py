@@ -5,73 +5,33 @@ true position topic and fault-injection service play the part of the real world.
 """
 
 import math
-import signal
 
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from diagnostic_msgs.msg import DiagnosticStatus
 import pytest
-from rosharness import CONFIG, executable, free_port, wait_for
-from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64
-from std_srvs.srv import SetBool, Trigger
-from stepper_drivers_msgs.msg import DriveStatus
-from stepper_drivers_msgs.srv import InjectFault, ReadRegister, WriteRegister
+from rosharness import DriveBench, bad_parameter_output, free_port, wait_for
+from stepper_drivers_msgs.srv import ReadRegister, WriteRegister
 
 NODE = '/xplus_mt_node'
 SIM = '/xplus_mt_sim'
 STEPS_PER_RAD = 12800 / (2 * math.pi)
 
 
-class Bench:
+class Bench(DriveBench):
     """A simulator and a node on a free port, plus helpers to reach them through ROS."""
 
+    vendor = 'xplus_mt'
+
     def __init__(self, procs, ros, tmp_path, node_args=()):
-        self.procs, self.ros, self.tmp = procs, ros, tmp_path
         self.port = free_port()
         self.storage = tmp_path / 'eeprom'
         self.storage.mkdir()
-        self.start_sim()
-        self.node = procs.start('node', [
-            executable('stepper_drivers', 'xplus_mt_node'), '--ros-args',
-            '--params-file', str(CONFIG / 'xplus_mt.yaml'), '-p', f'port:={self.port}',
-            '-p', 'reconnect_period_s:=0.2', *node_args])
-        ros.subscribe(JointState, '/joint_states', keep=True)
-        ros.subscribe(DiagnosticArray, '/diagnostics')
-        for d in ('axis1', 'axis2'):
-            ros.subscribe(DriveStatus, f'{NODE}/{d}/status')
-            ros.subscribe(Float64, f'{SIM}/{d}/true_position_steps')
-            self.status(d, lambda m: m.connected, what=f'{d} connected')
+        super().__init__(procs, ros, node_args)
 
-    def start_sim(self):
-        for d in ('axis1', 'axis2'):    # forget what a previous simulator published
-            self.ros.latest.pop(f'{SIM}/{d}/true_position_steps', None)
-        self.sim = self.procs.start('sim', [
-            executable('stepper_sim', 'xplus_mt_sim'), '--ros-args',
-            '--params-file', str(CONFIG / 'xplus_mt_sim.yaml'), '-p', f'port:={self.port}',
-            '-p', f'storage_dir:={self.storage}'])
-        self.sim.wait_line('ready', 30.0)
+    def link_args(self):
+        return ['-p', f'port:={self.port}']
 
-    def status(self, drive, cond=lambda m: True, timeout_s=10.0, what=''):
-        return self.ros.wait_msg(f'{NODE}/{drive}/status', cond, timeout_s,
-                                 what or f'{drive} status')
-
-    def true_steps(self, drive):
-        return self.ros.wait_msg(f'{SIM}/{drive}/true_position_steps').data
-
-    def call(self, drive, name, request=None, srv=Trigger, timeout_s=30.0):
-        return self.ros.call(srv, f'{NODE}/{drive}/{name}', request, timeout_s)
-
-    def enable(self, drive, on=True):
-        r = self.call(drive, 'enable', SetBool.Request(data=on), SetBool)
-        assert r.success, r.message
-        return r
-
-    def inject(self, drive, kind, code=0, value=0.0):
-        r = self.ros.call(InjectFault, SIM + '/inject_fault',
-                          InjectFault.Request(drive=drive, kind=kind, code=code, value=value))
-        assert r.success, r.message
-
-    def command(self, drive, topic, value):
-        self.ros.publish(Float64, f'{NODE}/{drive}/{topic}', Float64(data=value))
+    def sim_args(self):
+        return ['-p', f'storage_dir:={self.storage}']
 
 
 @pytest.fixture
@@ -90,7 +50,7 @@ def test_start_up_is_safe_and_enable_does_not_move(bench):
     assert abs(bench.true_steps('axis1') - before) < 1 and not st.moving
     # joint_states: stamped, named after the joints, in rad
     js = bench.ros.wait_msg('/joint_states')
-    assert list(js.name) == ['joint1', 'joint2']
+    assert list(js.name) == ['xplus_joint1', 'xplus_joint2']
     assert js.header.stamp.sec > 0
 
 
@@ -218,10 +178,7 @@ def test_simulator_restart_reconnects_and_stays_stopped(bench):
 
 
 def test_sigterm_stops_and_disables(bench):
-    bench.enable('axis1')
-    bench.command('axis1', 'velocity_command', 3.0)
-    bench.status('axis1', lambda m: m.moving, what='running')
-    assert bench.node.stop(signal.SIGTERM) == 0
+    bench.sigterm_while_running(3.0)
     # the drive is left stopped and disabled: ask it over Modbus directly
     from pymodbus.client import ModbusTcpClient
     c = ModbusTcpClient('127.0.0.1', port=bench.port, timeout=2)
@@ -236,13 +193,7 @@ def test_sigterm_stops_and_disables(bench):
 
 
 def test_bad_parameter_fails_start_up_with_one_line(procs, tmp_path):
-    text = (CONFIG / 'xplus_mt.yaml').read_text().replace('unit_id: 2', 'unit_id: 300')
-    f = tmp_path / 'bad.yaml'
-    f.write_text(text)
-    p = procs.start('bad', [executable('stepper_drivers', 'xplus_mt_node'), '--ros-args',
-                            '--params-file', str(f)])
-    assert p.proc.wait(timeout=20) == 2
-    out = p.output().strip().splitlines()
+    out = bad_parameter_output(procs, tmp_path, 'xplus_mt', 'unit_id: 2', 'unit_id: 300')
     assert out[-1] == ('xplus_mt_node: parameter drives.axis2.unit_id: 300 is out of range '
                        '(allowed: an integer from 0 to 255)'), out
 
@@ -265,38 +216,24 @@ def test_link_cut_during_velocity_run_ends_stopped_not_resumed(bench):
              and bench.status('axis1').link_reconnects >= 1, 5.0, 'standstill after reconnect')
 
 
-def set_params(bench, *params):
-    from rcl_interfaces.msg import Parameter, ParameterValue, ParameterType
-    from rcl_interfaces.srv import SetParameters
-    req = SetParameters.Request()
-    for name, value in params:
-        v = ParameterValue()
-        if isinstance(value, float):
-            v.type, v.double_value = ParameterType.PARAMETER_DOUBLE, value
-        else:
-            v.type, v.integer_value = ParameterType.PARAMETER_INTEGER, value
-        req.parameters.append(Parameter(name=name, value=v))
-    return bench.ros.call(SetParameters, NODE + '/set_parameters', req).results
-
-
 def test_runtime_parameters_take_effect_and_are_checked(bench):
     bench.enable('axis1')
     # cross-field rule: max_velocity below profile_velocity (12 rad/s) is refused with the reason
-    (r,) = set_params(bench, ('drives.axis1.max_velocity', 5.0))
+    (r,) = bench.set_params(('drives.axis1.max_velocity', 5.0))
     assert not r.successful and 'drives.axis1.profile_velocity' in r.reason
     # range of the descriptor
-    (r,) = set_params(bench, ('drives.axis1.max_velocity', -1.0))
+    (r,) = bench.set_params(('drives.axis1.max_velocity', -1.0))
     assert not r.successful
     # bus settings are read-only after start
-    (r,) = set_params(bench, ('port', 1))
+    (r,) = bench.set_params(('port', 1))
     assert not r.successful and 'read-only' in r.reason
-    (r,) = set_params(bench, ('drives.axis1.max_velocity', 20.0))
+    (r,) = bench.set_params(('drives.axis1.max_velocity', 20.0))
     assert r.successful, r.reason
     bench.command('axis1', 'velocity_command', 25.0)
     st = bench.status('axis1', lambda m: 'exceeds max_velocity (20)' in m.last_refusal)
     assert not st.moving
     # a slower profile makes the same move take longer: profile_velocity 1 rad/s, 0.5 rad
-    (r,) = set_params(bench, ('drives.axis1.profile_velocity', 1.0))
+    (r,) = bench.set_params(('drives.axis1.profile_velocity', 1.0))
     assert r.successful, r.reason
     bench.command('axis1', 'position_command', 0.5)
     st = bench.status('axis1', lambda m: m.moving and m.velocity > 0.5, what='moving')
@@ -307,14 +244,18 @@ def test_joint_command_moves_several_drives_by_joint_name(bench):
     from sensor_msgs.msg import JointState
     bench.enable('axis1')
     bench.enable('axis2')
-    js = JointState(name=['joint2', 'joint1', 'unknown'], position=[-1.0, 2.0, 0.0])
+    js = JointState(name=['xplus_joint2', 'xplus_joint1', 'unknown'],
+                    position=[-1.0, 2.0, 0.0])
     bench.ros.publish(JointState, '/joint_command', js)
-    bench.status('axis1', lambda m: not m.moving and abs(m.position - 2.0) < 1e-3, what='joint1')
-    bench.status('axis2', lambda m: not m.moving and abs(m.position + 1.0) < 1e-3, what='joint2')
+    bench.status('axis1', lambda m: not m.moving and abs(m.position - 2.0) < 1e-3,
+                 what='xplus_joint1')
+    bench.status('axis2', lambda m: not m.moving and abs(m.position + 1.0) < 1e-3,
+                 what='xplus_joint2')
     # velocity field where position is NaN
-    js = JointState(name=['joint1'], position=[math.nan], velocity=[2.0])
+    js = JointState(name=['xplus_joint1'], position=[math.nan], velocity=[2.0])
     bench.ros.publish(JointState, '/joint_command', js)
-    bench.status('axis1', lambda m: m.moving and m.velocity > 1.5, what='joint1 velocity')
+    bench.status('axis1', lambda m: m.moving and m.velocity > 1.5,
+                 what='xplus_joint1 velocity')
     bench.status('axis1', lambda m: not m.moving, what='watchdog stop')
 
 
@@ -357,10 +298,10 @@ def test_move_to_and_homing_actions_give_feedback_and_result(bench):
 
 def test_status_carries_address_and_diagnostics_identity(bench):
     st = bench.status('axis2')
-    assert (st.vendor, st.address, st.joint_name) == ('X-PLUS MT', '2', 'joint2')
+    assert (st.vendor, st.address, st.joint_name) == ('X-PLUS MT', '2', 'xplus_joint2')
     diag = bench.ros.wait_msg('/diagnostics', lambda a: any(s.name.endswith('axis2')
                                                              for s in a.status))
     (d,) = [s for s in diag.status if s.name.endswith('axis2')]
     keys = {kv.key: kv.value for kv in d.values}
-    assert keys['state'] == 'SWITCH ON DISABLED' and keys['joint'] == 'joint2'
+    assert keys['state'] == 'SWITCH ON DISABLED' and keys['joint'] == 'xplus_joint2'
     assert d.level == DiagnosticStatus.OK

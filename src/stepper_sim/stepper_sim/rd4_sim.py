@@ -4,8 +4,8 @@ Two layers, no rclpy below `main()`:
 - `Rd4Unit`: one RD4 by node id: the register map of the manual §8.1 with the §10 defaults, the
   Control Word [0x2A] logic of §8.1.1 (edges and levels), positioning and jog on a `MotionModel`,
   software limits, alarms and alarm reset, watchdog, save/load defaults/preset.
-- `RtuLine`: the serial line: an `os.openpty()` pair whose master side it reads and writes with
-  its own RTU framing (the slave side's path is handed to the driver through a symlink). Every
+- `RtuLine`: the serial line: a `pty_line.PtyLine` (an `os.openpty()` pair, the slave side's
+  path handed to the driver through a symlink) whose bytes it frames as RTU itself. Every
   frame's CRC is checked; a bad CRC, a broadcast or a frame for another node id gets silence
   (§7.3.1, §8.2), which pymodbus's server does not do (research/transports.md §B1 item 4). With
   `line_timing` the replies come as late as a real line at the dip-switch baud rate delivers them:
@@ -23,20 +23,17 @@ import logging
 import math
 import os
 import pathlib
-import select
 import sys
 import termios
-import threading
 import time
-import tty
 from typing import Callable, Mapping, Sequence
 
 from stepper_drivers.protocol import modbus_rtu as rtu
 from stepper_drivers.vendors import rd4_map as rm
 from stepper_drivers.vendors.rd4_map import HR
 
-from .faults import CORRUPT_REPLY, CUT, LATE_REPLY, MODES, NO_REPLY, OK, LinkFaults
 from .motion import MotionModel
+from .pty_line import LINK_FAULTS, PtyLine, PtyLineBackend
 
 logger = logging.getLogger(__name__)
 
@@ -509,9 +506,6 @@ class Rd4Unit:
         logger.info('%s: default parameters loaded (not saved)', self.name)
 
 
-LINK_FAULTS = (NO_REPLY, LATE_REPLY, CORRUPT_REPLY, CUT, 'link_ok')
-
-
 def corrupt_crc(reply: bytes) -> bytes:
     """A reply whose CRC is wrong (last byte flipped): framed like a real one."""
     return reply[:-1] + bytes((reply[-1] ^ 0xFF,)) if reply else reply
@@ -522,13 +516,17 @@ _BAUD_CONSTANTS = {getattr(termios, f'B{b}'): b for b in
                    if hasattr(termios, f'B{b}')}
 
 
-class RtuLine:
+class RtuLine(PtyLine):
     """A Modbus RTU line on a pty: the units answer the master on the other side.
 
     `link_path` is a symlink to the pty's slave side (the driver's `port`), replaced atomically
     when the pty is re-created. `tap(direction, frame, t)` sees every frame ('rx' from the
     master, 'tx' to it).
     """
+
+    label = 'RTU'
+    thread_name = 'rd4-line'
+    tick_s = TICK_S
 
     def __init__(self, units: Sequence[Rd4Unit], link_path: str | os.PathLike | None = None,
                  baud_switch: int = rm.BAUD_SWITCH_DEFAULT, line_timing: bool = False,
@@ -537,190 +535,69 @@ class RtuLine:
         if baud_switch not in rm.BAUD_SWITCH:
             raise ValueError(f'baud_switch: {baud_switch} is not in the dip-switch table '
                              '(allowed: 0..5, §4.4.2)')
-        self.units: dict[int, Rd4Unit] = {}
+        by_id: dict[int, Rd4Unit] = {}
         for unit in units:
             unit.baud_switch = baud_switch     # every unit on a line has the line's setting
-            if unit.node_id in self.units:
+            if unit.node_id in by_id:
                 raise ValueError(f'drives.{unit.name}.node_id: {unit.node_id} is also '
-                                 f'{self.units[unit.node_id].name}\'s (node ids are unique on '
+                                 f'{by_id[unit.node_id].name}\'s (node ids are unique on '
                                  'a line, §7.1)')
-            self.units[unit.node_id] = unit
+            by_id[unit.node_id] = unit
+        baud, parity = rm.BAUD_SWITCH[baud_switch]
+        super().__init__(link_path or f'/tmp/rd4_sim_{os.getpid()}', corrupt=corrupt_crc,
+                         pty_baud=baud, line_timing=line_timing, tap=tap)
+        self.units = by_id
         self.by_name = {u.name: u for u in units}
-        self.link_path = str(link_path or f'/tmp/rd4_sim_{os.getpid()}')
-        self.baud, self.parity = rm.BAUD_SWITCH[baud_switch]
-        self.line_timing = line_timing
+        self.baud, self.parity = baud, parity
         self.turnaround_s = turnaround_s
         self.check_baud = check_baud
-        self.tap = tap
         self.t35_s = rtu.t35_s(self.baud)
-        self.faults = LinkFaults(corrupt=corrupt_crc)
-        self.fault_budget = 0              # replies the current fault still affects (0: all)
-        self.lock = threading.RLock()
-        self.counters = {'frames': 0, 'replies': 0, 'crc_errors': 0, 'other_node': 0,
-                         'broadcast': 0, 'exceptions': 0, 'baud_mismatch': 0, 'pty_opened': 0}
-        self._master: int | None = None
-        self._slave: int | None = None
-        self.tty_name = ''
-        self._wake_r, self._wake_w = os.pipe()
-        self._thread: threading.Thread | None = None
-        self._stopping = False
-        self._want_open = True
+        self.counters.update({'frames': 0, 'replies': 0, 'crc_errors': 0, 'other_node': 0,
+                              'broadcast': 0, 'exceptions': 0, 'baud_mismatch': 0})
         self._line_free_at = 0.0
         self._warned_baud = False
-        self.faults.add_listener(lambda mode, _d: self._wake())
+        self._buf = bytearray()            # the frame being received
+        self._first_rx = self._last_rx = 0.0
+        self._pending: tuple[float, bytes] | None = None    # (due time, reply)
 
-    # ------------------------------------------------------------------------- life cycle
-    def start(self) -> str:
+    def _settings(self) -> str:
+        return (f'{self.baud} baud {rm.serial_format(self.parity)}, '
+                f'line timing {"on" if self.line_timing else "off"}')
+
+    # ------------------------------------------------------------------- framing (§7.3.1)
+    def _received_bytes(self, data: bytes, now: float) -> None:
+        if not self._buf:
+            self._first_rx = now
+        self._buf += data
+        self._last_rx = now
+
+    def _deadline_s(self) -> float | None:
+        due = [self._last_rx + self.t35_s] if self._buf else []
+        if self._pending is not None:
+            due.append(self._pending[0])
+        return min(due, default=None)
+
+    def _service(self, now: float) -> None:
+        buf = self._buf
+        if buf:
+            n = rtu.request_length(buf)
+            if n is not None and len(buf) >= n and rtu.crc_ok(bytes(buf[:n])):
+                frame = bytes(buf[:n])
+                del buf[:n]
+                self._pending = self._frame(frame, self._first_rx, now) or self._pending
+                self._first_rx = now
+            elif now - self._last_rx >= self.t35_s or len(buf) > rtu.MAX_FRAME_BYTES:
+                frame = bytes(buf)       # t3.5 of silence ends a frame (§7.3.1)
+                buf.clear()
+                self._pending = self._frame(frame, self._first_rx, now) or self._pending
+        if self._pending is not None and time.monotonic() >= self._pending[0]:
+            self._send(self._pending[1])
+            self._pending = None
+
+    def _tick(self, now: float) -> None:
         with self.lock:
-            self._open_pty()
-        self._thread = threading.Thread(target=self._run, name='rd4-line', daemon=True)
-        self._thread.start()
-        return self.link_path
-
-    def stop(self) -> None:
-        self._stopping = True
-        self._wake()
-        if self._thread is not None:
-            self._thread.join(timeout=5.0)
-            self._thread = None
-        with self.lock:
-            self._close_pty()
-            self._unlink()
-        for fd in (self._wake_r, self._wake_w):
-            try:
-                os.close(fd)
-            except OSError:
-                pass
-        self._wake_r = self._wake_w = -1
-
-    def _wake(self) -> None:
-        try:
-            os.write(self._wake_w, b'x')
-        except OSError:
-            pass
-
-    def _open_pty(self) -> None:
-        master, slave = os.openpty()
-        tty.setraw(slave)          # no echo, no CR/LF translation (research §C)
-        attrs = termios.tcgetattr(slave)
-        speed = getattr(termios, f'B{self.baud}')
-        attrs[4] = attrs[5] = speed
-        termios.tcsetattr(slave, termios.TCSANOW, attrs)
-        self._master, self._slave = master, slave   # slave kept open: no EIO while unplugged
-        self.tty_name = os.ttyname(slave)
-        tmp = f'{self.link_path}.{os.getpid()}.tmp'
-        if os.path.lexists(tmp):
-            os.unlink(tmp)
-        os.symlink(self.tty_name, tmp)
-        os.replace(tmp, self.link_path)
-        self.counters['pty_opened'] += 1
-        logger.info('RTU line on %s -> %s (%d baud %s, line timing %s)', self.link_path,
-                    self.tty_name, self.baud, rm.serial_format(self.parity),
-                    'on' if self.line_timing else 'off')
-
-    def _unlink(self) -> None:
-        try:
-            if os.path.islink(self.link_path) and os.readlink(self.link_path) == self.tty_name:
-                os.unlink(self.link_path)
-        except OSError:
-            pass
-
-    def _close_pty(self) -> None:
-        for fd in (self._master, self._slave):
-            if fd is not None:
-                try:
-                    os.close(fd)
-                except OSError:
-                    pass
-        self._master = self._slave = None
-
-    # ---------------------------------------------------------------------------- faults
-    def set_link_fault(self, kind: str, count: int = 0, delay_s: float = 0.0) -> str:
-        mode = OK if kind == 'link_ok' else kind
-        if mode not in MODES:
-            raise ValueError(f'unknown link fault {kind!r} (allowed: {", ".join(LINK_FAULTS)})')
-        with self.lock:
-            self.fault_budget = max(0, int(count)) if mode not in (OK, CUT) else 0
-            self.faults.set(mode, delay_s)
-        if mode == CUT:
-            return 'pty closed (the driver sees the port vanish) until link_ok'
-        if mode == OK:
-            return 'link ok' + ('; pty re-created' if self._master is None else '')
-        return f'{kind} for ' + (f'the next {count} replies' if count > 0 else 'every reply')
-
-    # ------------------------------------------------------------------------------ loop
-    def _run(self) -> None:
-        buf = bytearray()
-        first_rx = last_rx = 0.0
-        pending: tuple[float, bytes] | None = None
-        next_tick = time.monotonic()
-        while not self._stopping:
-            now = time.monotonic()
-            timeout = max(0.0, next_tick - now)
-            if buf:
-                timeout = min(timeout, max(0.0, last_rx + self.t35_s - now))
-            if pending is not None:
-                timeout = min(timeout, max(0.0, pending[0] - now))
-            fds = [self._wake_r] + ([self._master] if self._master is not None else [])
-            try:
-                readable, _, _ = select.select(fds, [], [], timeout)
-            except (OSError, ValueError):
-                readable = []
-            now = time.monotonic()
-            if self._wake_r in readable:
-                os.read(self._wake_r, 4096)
-                self._apply_cut()
-            if self._master is not None and self._master in readable:
-                try:
-                    data = os.read(self._master, 4096)
-                except OSError:
-                    data = b''
-                if data:
-                    if not buf:
-                        first_rx = now
-                    buf += data
-                    last_rx = now
-            if buf:
-                n = rtu.request_length(buf)
-                if n is not None and len(buf) >= n and rtu.crc_ok(bytes(buf[:n])):
-                    frame = bytes(buf[:n])
-                    del buf[:n]
-                    pending = self._frame(frame, first_rx, now) or pending
-                    first_rx = now
-                elif now - last_rx >= self.t35_s or len(buf) > rtu.MAX_FRAME_BYTES:
-                    frame = bytes(buf)       # t3.5 of silence ends a frame (§7.3.1)
-                    buf.clear()
-                    pending = self._frame(frame, first_rx, now) or pending
-            if pending is not None and time.monotonic() >= pending[0]:
-                self._send(pending[1])
-                pending = None
-            if now >= next_tick:
-                with self.lock:
-                    for unit in self.units.values():
-                        unit.update(now)
-                next_tick = now + TICK_S
-
-    def _apply_cut(self) -> None:
-        with self.lock:
-            cut = self.faults.mode == CUT
-            if cut and self._master is not None:
-                self._close_pty()
-                # No link to a dead pts: its number may be given to another process's pty.
-                self._unlink()
-                logger.info('link cut: pty closed')
-            elif not cut and self._master is None and not self._stopping:
-                self._open_pty()
-
-    def _send(self, reply: bytes) -> None:
-        if self._master is None:
-            return
-        try:
-            os.write(self._master, reply)
-        except OSError as exc:
-            logger.debug('write to pty: %s', exc)
-            return
-        if self.tap:
-            self.tap('tx', reply, time.monotonic())
+            for unit in self.units.values():
+                unit.update(now)
 
     def _master_baud(self) -> int | None:
         try:
@@ -737,12 +614,7 @@ class RtuLine:
             self.counters['frames'] += 1
             reply = self._answer(frame, now)
             if reply is not None:
-                mode = self.faults.mode
-                reply, extra = self.faults.apply_to_reply(reply)
-                if mode != OK and self.fault_budget > 0:
-                    self.fault_budget -= 1
-                    if self.fault_budget == 0:
-                        self.faults.set(OK)
+                reply, extra = self._apply_link_faults(reply)
             else:
                 extra = 0.0
         # Line timing: the request takes its time on the wire (starting when the line is free),
@@ -802,11 +674,7 @@ class RtuLine:
 
     # ------------------------------------------------------------------------- access
     def unit(self, name: str) -> Rd4Unit:
-        try:
-            return self.by_name[name]
-        except KeyError:
-            raise ValueError(f'unknown drive {name!r} (drives: {", ".join(self.by_name)})') \
-                from None
+        return self.device(name)
 
 
 # ------------------------------------------------------------------------------ ROS backend
@@ -847,22 +715,10 @@ def build_line(params: Mapping, drives: Mapping[str, Mapping]) -> RtuLine:
                    check_baud=bool(params.get('check_baud', True)))
 
 
-class Rd4SimBackend:
+class Rd4SimBackend(PtyLineBackend):
     """rd4_sim's `sim_node.SimBackend` (duck-typed, so this module imports no rclpy)."""
 
-    def __init__(self, line: RtuLine):
-        self.line = line
-
-    def start(self) -> str:
-        path = self.line.start()
-        return f'{path} -> {self.line.tty_name}'
-
-    def stop(self) -> None:
-        self.line.stop()
-
-    @property
-    def drive_names(self) -> Sequence[str]:
-        return list(self.line.by_name)
+    line: RtuLine
 
     def true_position_steps(self, drive: str) -> float:
         with self.line.lock:

@@ -10,7 +10,7 @@ Two layers, neither needs rclpy:
   'home' switch), the coordinate modes (§5), the error register (QE). `receive()` takes one host
   string and returns the answer, or None for silence: broadcast, unknown address, busy (only EE
   and ES are heard, §3), the 200 ms after WS,RS.
-- `XmindKLine`: the RS-485 line on an `os.openpty()` pair (slave kept open, symlinked to `port`),
+- `XmindKLine`: the RS-485 line on a `pty_line.PtyLine` (slave kept open, symlinked to `port`),
   one or more drives on it, link faults (`LinkFaults`), and, with `line_timing`, the timing of a
   real 9600 baud line (§3): the host string takes N x 1.04 ms to arrive, the answer starts
   1.5 ms (WN: 12 ms) plus the RD answer delay later and takes its own characters' time.
@@ -29,24 +29,20 @@ import logging
 import math
 import os
 import pathlib
-import select
 import sys
-import threading
 import time
-import tty
 from typing import Any, Callable, Mapping, Sequence
 
 from stepper_drivers.protocol import xmind_k as xk
 
 from .axis import HOME, TARGET_REACHED, AxisEvent, SimAxis
-from .faults import CUT, MODES, OK, LinkFaults
 from .motion import INF
+from .pty_line import LINK_FAULTS, PtyLine, PtyLineBackend
 
 logger = logging.getLogger(__name__)
 
 TICK_S = 0.05                 # state refresh of the drives between strings (cam, outputs)
 INPUTS = ('ST', 'EE', 'ES', 'I0', 'I1', 'I2', 'PX', 'S0', 'S1', 'S2', 'S3')
-LINK_FAULTS = ('no_reply', 'late_reply', 'corrupt_reply', 'cut', 'link_ok')
 NULL_CELL = xk.Instruction(0, (), xk.END_OF_PROGRAM)     # content of a cell never written
 
 
@@ -589,8 +585,13 @@ class XmindKDriveSim:
             self.phase = 'dstop_brake'
 
 
-class XmindKLine:
+class XmindKLine(PtyLine):
     """An RS-485 line on a pty with one or more simulated drives."""
+
+    label = 'X-MIND K'
+    thread_name = 'xmind-k-line'
+    reply_words = ('answer', 'answers')
+    tick_s = TICK_S
 
     def __init__(self, drives: Sequence[XmindKDriveSim], link_path: str | None = None, *,
                  line_timing: bool = False, baudrate: int = xk.BAUDRATE,
@@ -604,156 +605,51 @@ class XmindKLine:
                 raise ValueError(f'drives.{d.name}.address: {d.address:02d} is also '
                                  f"{seen[d.address]}'s (addresses are unique on a line)")
             seen[d.address] = d.name
+        super().__init__(link_path or f'/tmp/xmind_k_sim_{os.getpid()}', corrupt=corrupt_ascii,
+                         line_timing=line_timing, tap=tap)
         self.drives = list(drives)
         self.by_name = {d.name: d for d in drives}
-        self.link_path = link_path or f'/tmp/xmind_k_sim_{os.getpid()}'
-        self.line_timing = line_timing
         self.char_s = xk.char_time_s(baudrate)
         self.tolerant = tolerant
         self.rd_mode = rd_mode
-        self.tap = tap
-        self.faults = LinkFaults(corrupt=corrupt_ascii)
-        self.fault_budget = 0
-        self.lock = threading.RLock()
-        self.counters = {'strings': 0, 'answers': 0, 'pty_opened': 0}
-        self.tty_name = ''
-        self._master: int | None = None
-        self._slave: int | None = None
-        self._wake_r, self._wake_w = os.pipe()
-        self._thread: threading.Thread | None = None
-        self._stopping = False
+        self.counters.update({'strings': 0, 'answers': 0})
+        self._buf = bytearray()            # the string being received
+        self._first_rx = 0.0
         self._schedule: list[tuple[float, int, Callable[[], None]]] = []
         self._seq = itertools.count()
         self._line_free_at = 0.0
-        self.faults.add_listener(lambda _mode, _delay: self._wake())
 
-    # ---------------------------------------------------------------------------- life cycle
-    def start(self) -> str:
+    # ----------------------------------------------------------------------- framing (§3)
+    def _received_bytes(self, data: bytes, now: float) -> None:
+        buf = self._buf
+        for byte in data:
+            if not buf:
+                self._first_rx = now
+            buf.append(byte)
+            if byte == 13:                      # §3 ASCII 13 ends every string
+                self._received(bytes(buf), self._first_rx, now)
+                buf.clear()
+        if len(buf) > 256:
+            buf.clear()                         # no string is that long: noise
+
+    def _deadline_s(self) -> float | None:
+        return self._schedule[0][0] if self._schedule else None
+
+    def _service(self, now: float) -> None:
+        while self._schedule and self._schedule[0][0] <= time.monotonic():
+            _, _, action = heapq.heappop(self._schedule)
+            action()
+
+    def _tick(self, now: float) -> None:
         with self.lock:
-            self._open_pty()
-        self._thread = threading.Thread(target=self._run, name='xmind-k-line', daemon=True)
-        self._thread.start()
-        return self.link_path
-
-    def stop(self) -> None:
-        self._stopping = True
-        self._wake()
-        if self._thread is not None:
-            self._thread.join(timeout=5.0)
-            self._thread = None
-        with self.lock:
-            self._close_pty()
-            if os.path.islink(self.link_path):
-                try:
-                    os.unlink(self.link_path)
-                except OSError:
-                    pass
-        for fd in (self._wake_r, self._wake_w):
-            try:
-                os.close(fd)
-            except OSError:
-                pass
-        self._wake_r = self._wake_w = -1
-
-    def _wake(self) -> None:
-        try:
-            os.write(self._wake_w, b'x')
-        except OSError:
-            pass
-
-    def _open_pty(self) -> None:
-        master, slave = os.openpty()
-        tty.setraw(slave)            # no echo, no CR/LF translation (research §C)
-        self._master, self._slave = master, slave     # slave kept open: no EIO when unplugged
-        self.tty_name = os.ttyname(slave)
-        tmp = f'{self.link_path}.{os.getpid()}.tmp'
-        if os.path.lexists(tmp):
-            os.unlink(tmp)
-        os.symlink(self.tty_name, tmp)
-        os.replace(tmp, self.link_path)
-        self.counters['pty_opened'] += 1
-        logger.info('X-MIND K line on %s -> %s (line timing %s)', self.link_path, self.tty_name,
-                    'on' if self.line_timing else 'off')
-
-    def _close_pty(self) -> None:
-        for fd in (self._master, self._slave):
-            if fd is not None:
-                try:
-                    os.close(fd)
-                except OSError:
-                    pass
-        self._master = self._slave = None
-
-    # -------------------------------------------------------------------------------- faults
-    def set_link_fault(self, kind: str, count: int = 0, delay_s: float = 0.0) -> str:
-        mode = OK if kind == 'link_ok' else kind
-        if mode not in MODES:
-            raise ValueError(f'unknown link fault {kind!r} (allowed: {", ".join(LINK_FAULTS)})')
-        with self.lock:
-            self.fault_budget = max(0, int(count)) if mode not in (OK, CUT) else 0
-            self.faults.set(mode, delay_s)
-        if mode == CUT:
-            return 'pty closed (the driver sees the port vanish) until link_ok'
-        if mode == OK:
-            return 'link ok'
-        return f'{kind} for ' + (f'the next {count} answers' if count > 0 else 'every answer')
-
-    # ---------------------------------------------------------------------------------- loop
-    def _run(self) -> None:
-        buf = bytearray()
-        first_rx = 0.0
-        next_tick = time.monotonic()
-        while not self._stopping:
-            now = time.monotonic()
-            timeout = max(0.0, next_tick - now)
-            if self._schedule:
-                timeout = min(timeout, max(0.0, self._schedule[0][0] - now))
-            fds = [self._wake_r] + ([self._master] if self._master is not None else [])
-            try:
-                readable, _, _ = select.select(fds, [], [], timeout)
-            except (OSError, ValueError):
-                readable = []
-            now = time.monotonic()
-            if self._wake_r in readable:
-                os.read(self._wake_r, 4096)
-                self._apply_cut()
-            if self._master is not None and self._master in readable:
-                try:
-                    data = os.read(self._master, 4096)
-                except OSError:
-                    data = b''
-                for byte in data:
-                    if not buf:
-                        first_rx = now
-                    buf.append(byte)
-                    if byte == 13:                      # §3 ASCII 13 ends every string
-                        self._received(bytes(buf), first_rx, now)
-                        buf.clear()
-                if len(buf) > 256:
-                    buf.clear()                         # no string is that long: noise
-            while self._schedule and self._schedule[0][0] <= time.monotonic():
-                _, _, action = heapq.heappop(self._schedule)
-                action()
-            if now >= next_tick:
-                with self.lock:
-                    for d in self.drives:
-                        d.update(now)
-                next_tick = now + TICK_S
+            for d in self.drives:
+                d.update(now)
 
     def _later(self, t: float, action: Callable[[], None]) -> None:
         if t <= time.monotonic():
             action()
         else:
             heapq.heappush(self._schedule, (t, next(self._seq), action))
-
-    def _apply_cut(self) -> None:
-        with self.lock:
-            cut = self.faults.mode == CUT
-            if cut and self._master is not None:
-                self._close_pty()
-                logger.info('link cut: pty closed')
-            elif not cut and self._master is None and not self._stopping:
-                self._open_pty()
 
     def _received(self, frame: bytes, first_rx: float, now: float) -> None:
         """A host string is in: it ends on the wire N characters after it began (§3), then
@@ -785,13 +681,8 @@ class XmindKLine:
                                    for d in (drives or self.drives)) if a is not None]
             if not answers:
                 return
-            reply = b''.join(answers)          # two drives on one address: a collision
-            mode = self.faults.mode
-            reply, extra = self.faults.apply_to_reply(reply)
-            if mode != OK and self.fault_budget > 0:
-                self.fault_budget -= 1
-                if self.fault_budget == 0:
-                    self.faults.set(OK)
+            # two drives on one address answer at once: a collision on the wire
+            reply, extra = self._apply_link_faults(b''.join(answers))
         if reply is None:
             return
         self.counters['answers'] += 1
@@ -803,17 +694,6 @@ class XmindKLine:
             self._later(end, lambda: self._send(reply[1:]))
         else:
             self._later(start, lambda: self._send(reply))
-
-    def _send(self, data: bytes) -> None:
-        if self._master is None:
-            return
-        try:
-            os.write(self._master, data)
-        except OSError as exc:
-            logger.debug('write to pty: %s', exc)
-            return
-        if self.tap:
-            self.tap('tx', data, time.monotonic())
 
 
 # --------------------------------------------------------------------------------- backend
@@ -842,29 +722,13 @@ def build_line(params: Mapping[str, Any], drives: Mapping[str, Mapping[str, Any]
                       rd_mode=str(params.get('rd_mode', 'add')))
 
 
-class XmindKSimBackend:
+class XmindKSimBackend(PtyLineBackend):
     """xmind_k_sim's `sim_node.SimBackend` (duck-typed: no rclpy in this module)."""
 
-    def __init__(self, line: XmindKLine):
-        self.line = line
-
-    def start(self) -> str:
-        path = self.line.start()
-        return f'{path} -> {self.line.tty_name}'
-
-    def stop(self) -> None:
-        self.line.stop()
-
-    @property
-    def drive_names(self) -> Sequence[str]:
-        return list(self.line.by_name)
+    line: XmindKLine
 
     def _drive(self, name: str) -> XmindKDriveSim:
-        try:
-            return self.line.by_name[name]
-        except KeyError:
-            raise ValueError(f'unknown drive {name!r} (drives: '
-                             f'{", ".join(self.line.by_name)})') from None
+        return self.line.device(name)
 
     def true_position_steps(self, drive: str) -> float:
         with self.line.lock:
