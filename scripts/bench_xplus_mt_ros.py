@@ -34,13 +34,20 @@ from stepper_drivers_msgs.msg import DriveStatus  # noqa: E402
 
 STATE_BLOCK = (1001, 21)      # the block the node reads per drive per cycle (1001..1021)
 TARGET_POSITION = 1042
+# Commands this far apart: each one finds the bus free (a move holds it for the handshake).
+COMMAND_GAP_S = 0.06
 
 
 class SniffingRelay:
-    """127.0.0.1:listen -> 127.0.0.1:upstream; records (time, function code, address) per request."""
+    """127.0.0.1:listen -> 127.0.0.1:upstream; records (time, function code, address) per request.
 
-    def __init__(self, upstream_port: int):
+    Run in a process of its own (`--relay PORT`, see RelayProcess): in the benchmark process its
+    asyncio thread would share the GIL with rclpy's executor threads and answer late.
+    """
+
+    def __init__(self, upstream_port: int, on_target=None):
         self.upstream_port = upstream_port
+        self.on_target = on_target
         self.port = free_port()
         self.requests: list[tuple[float, int, int]] = []
         self.loop = asyncio.new_event_loop()
@@ -73,6 +80,8 @@ class SniffingRelay:
                     frame, buf = buf[:6 + length], buf[6 + length:]
                     fc, addr = frame[7], struct.unpack('>H', frame[8:10])[0]
                     self.requests.append((now, fc, addr))
+                    if fc == 16 and addr == TARGET_POSITION and self.on_target:
+                        self.on_target(now)
                 up_w.write(data)
             up_w.close()
 
@@ -81,6 +90,36 @@ class SniffingRelay:
                 writer.write(data)
             writer.close()
         await asyncio.gather(requests(), replies(), return_exceptions=True)
+
+
+class RelayProcess:
+    """The relay as a child process; it prints the time.monotonic() (system-wide on Linux) of
+    every Target Position write, which this process turns into an event."""
+
+    def __init__(self, upstream_port: int):
+        import subprocess
+        self.proc = subprocess.Popen([sys.executable, __file__, '--relay', str(upstream_port)],
+                                     stdout=subprocess.PIPE, text=True)
+        self.port = int(self.proc.stdout.readline().split()[1])
+        self.target_written = threading.Event()
+        self.target_written_at = 0.0
+        threading.Thread(target=self._read, daemon=True).start()
+
+    def _read(self):
+        for line in self.proc.stdout:
+            self.target_written_at = float(line.split()[1])
+            self.target_written.set()
+
+    def stop(self):
+        self.proc.terminate()
+        self.proc.wait(5)
+
+
+def run_relay(upstream_port: int) -> int:
+    relay = SniffingRelay(upstream_port, on_target=lambda t: print(f'T {t:.6f}', flush=True))
+    print(f'port {relay.port}', flush=True)
+    threading.Event().wait()     # until terminated
+    return 0
 
 
 def bare_pymodbus_tps(port: int, seconds: float) -> tuple[float, float]:
@@ -117,7 +156,7 @@ def node_tps(ros: RosClient, seconds: float) -> float:
     return (b.link_transactions - a.link_transactions) / dt
 
 
-def command_latencies(ros: RosClient, relay: SniffingRelay, n: int) -> list[float]:
+def command_latencies(ros: RosClient, relay: 'RelayProcess', n: int) -> list[float]:
     resp = ros.call(SetBool, '/xplus_mt_node/axis1/enable', SetBool.Request(data=True))
     assert resp.success, resp.message
     latencies = []
@@ -126,18 +165,12 @@ def command_latencies(ros: RosClient, relay: SniffingRelay, n: int) -> list[floa
     time.sleep(0.5)
     for i in range(n):
         target = 0.5 if i % 2 == 0 else -0.5
-        n_before = len(relay.requests)
+        relay.target_written.clear()
         t_pub = time.monotonic()
         ros.publish(Float64, topic, Float64(data=target))
-        deadline, seen = t_pub + 2.0, None
-        while seen is None and time.monotonic() < deadline:
-            seen = next((t for t, fc, addr in relay.requests[n_before:]
-                         if fc == 16 and addr == TARGET_POSITION), None)
-            if seen is None:
-                time.sleep(0.0002)  # polling the relay's list; 0.2 ms resolution
-        if seen is not None:
-            latencies.append((seen - t_pub) * 1000)
-        time.sleep(0.02)  # command pacing: 50 commands/s at most
+        if relay.target_written.wait(2.0):
+            latencies.append((relay.target_written_at - t_pub) * 1000)
+        time.sleep(COMMAND_GAP_S)  # let the set-point handshake (>= 2 x 12 ms) finish
     ros.call(SetBool, '/xplus_mt_node/axis1/enable', SetBool.Request(data=False))
     return sorted(latencies)
 
@@ -146,10 +179,13 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('--seconds', type=float, default=5.0)
     ap.add_argument('--commands', type=int, default=200)
+    ap.add_argument('--relay', type=int, metavar='UPSTREAM_PORT', help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.relay:
+        return run_relay(args.relay)
     log_dir = pathlib.Path(tempfile.mkdtemp(prefix='bench_xplus_'))
     sim_port = free_port()
-    procs, ros = [], None
+    procs, ros, relay = [], None, None
     try:
         sim = Proc([executable('stepper_sim', 'xplus_mt_sim'), '--ros-args', '--params-file',
                     str(CONFIG / 'xplus_mt_sim.yaml'), '-p', f'port:={sim_port}',
@@ -165,7 +201,7 @@ def main() -> int:
         node.stop()
         procs.remove(node)
         ros.latest.clear()
-        relay = SniffingRelay(sim_port)
+        relay = RelayProcess(sim_port)
         relay_tps, relay_rtt = bare_pymodbus_tps(relay.port, 1.0)
         node = start_node(log_dir, 'node_50hz', relay.port, 50.0)
         procs.append(node)
@@ -176,6 +212,8 @@ def main() -> int:
             ros.close()
         for p in reversed(procs):
             p.stop()
+        if relay:
+            relay.stop()
 
     p50 = statistics.median(lat)
     p99 = lat[min(len(lat) - 1, int(0.99 * len(lat)))]
