@@ -53,9 +53,9 @@ class Rig:
         assert r.success, r.message
 
     def close(self):
+        self.ros.close()          # first: its executor must not be waiting on vanishing peers
         for p in reversed(self.procs):
             p.kill()
-        self.ros.close()
 
 
 @pytest.fixture(scope='module')
