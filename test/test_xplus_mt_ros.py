@@ -305,3 +305,22 @@ def test_status_carries_address_and_diagnostics_identity(bench):
     keys = {kv.key: kv.value for kv in d.values}
     assert keys['state'] == 'SWITCH ON DISABLED' and keys['joint'] == 'xplus_joint2'
     assert d.level == DiagnosticStatus.OK
+
+
+def test_homing_that_does_not_finish_times_out_and_stops(bench):
+    # method 21 searches the home switch in the negative direction; axis1's switch is on the
+    # positive side, so the search runs on until homing.timeout_s
+    (a, b) = bench.set_params(('drives.axis1.homing.method', 21),
+                              ('drives.axis1.homing.timeout_s', 1.0))
+    assert a.successful and b.successful, (a.reason, b.reason)
+    bench.enable('axis1')
+    r = bench.call('axis1', 'home')
+    assert not r.success and 'timed out after 1 s (homing.timeout_s)' in r.message, r.message
+    st = bench.status('axis1', lambda m: not m.moving, timeout_s=5.0, what='stopped')
+    assert not st.homed and st.position < 0
+    # axis2's I0 is a general-purpose input (1088 bit 0 = 1): a switch method is refused up front
+    (r,) = bench.set_params(('drives.axis2.homing.method', 19))
+    assert r.successful, r.reason
+    bench.enable('axis2')
+    r = bench.call('axis2', 'home')
+    assert not r.success and 'INPUT_CONFIG (1088)' in r.message, r.message

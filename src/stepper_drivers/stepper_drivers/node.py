@@ -525,7 +525,9 @@ class DriveNode(Node):
             if st == HomingState.ERROR or h.state.fault:
                 raise DriveError(f'homing failed (state {h.state.state.value}'
                                  + (f', fault 0x{h.state.fault_code:04X} {h.state.fault_text}'
-                                    if h.state.fault else '') + ')')
+                                    if h.state.fault else '')
+                                 + (f', alarms: {"; ".join(h.state.alarms)}'
+                                    if h.state.alarms else '') + ')')
             if not h.connected:
                 raise DriveError('homing interrupted: link lost')
             if cancelled():
