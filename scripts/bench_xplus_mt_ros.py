@@ -152,7 +152,8 @@ def node_tps(ros: RosClient, seconds: float) -> float:
     a = ros.latest[status]
     time.sleep(seconds)  # measurement window
     b = ros.latest[status]
-    dt = (b.header.stamp.sec - a.header.stamp.sec) + (b.header.stamp.nanosec - a.header.stamp.nanosec) * 1e-9
+    dt = ((b.header.stamp.sec - a.header.stamp.sec)
+          + (b.header.stamp.nanosec - a.header.stamp.nanosec) * 1e-9)
     return (b.link_transactions - a.link_transactions) / dt
 
 
@@ -189,7 +190,8 @@ def main() -> int:
     try:
         sim = Proc([executable('stepper_sim', 'xplus_mt_sim'), '--ros-args', '--params-file',
                     str(CONFIG / 'xplus_mt_sim.yaml'), '-p', f'port:={sim_port}',
-                    '-p', 'strict:=false'], log_dir, 'sim')   # strict refuses reading the 1003 hole
+                    '-p', 'strict:=false'],    # strict refuses reading across the 1003 hole
+                   log_dir, 'sim')
         procs.append(sim)
         sim.wait_line('ready', 30)
         bare, bare_rtt = bare_pymodbus_tps(sim_port, args.seconds)
@@ -219,12 +221,15 @@ def main() -> int:
     p99 = lat[min(len(lat) - 1, int(0.99 * len(lat)))]
     print(f'X-PLUS MT benchmark ({os.cpu_count()} cores, load {os.getloadavg()[0]:.1f}; '
           'sim, node and this script on 127.0.0.1)')
-    print(f'  state read: one FC03 of {STATE_BLOCK[1]} registers from {STATE_BLOCK[0]} per drive per cycle')
-    print(f'  bare pymodbus sync loop:        {bare:8.0f} transactions/s (round trip {bare_rtt:.2f} ms)')
+    print(f'  state read: one FC03 of {STATE_BLOCK[1]} registers from {STATE_BLOCK[0]} '
+          'per drive per cycle')
+    print(f'  bare pymodbus sync loop:        {bare:8.0f} transactions/s '
+          f'(round trip {bare_rtt:.2f} ms)')
     print(f'  node poll loop, 1 drive:        {fast:8.0f} transactions/s '
           '(publish_rate_hz 1000: joint_states + status published every cycle)')
     print(f'  ratio node / bare:              {fast / bare:8.1%}')
-    print(f'  command -> wire latency:        p50 {p50:.2f} ms, p99 {p99:.2f} ms over {len(lat)} of '
+    print(f'  command -> wire latency:        p50 {p50:.2f} ms, p99 {p99:.2f} ms '
+          f'over {len(lat)} of '
           f'{args.commands} position_command messages (node at 50 Hz; measured at a relay whose '
           f'own round trip is {relay_rtt:.2f} ms)')
     return 0

@@ -1,4 +1,4 @@
-"""Workspace-level fixtures: loopback-only DDS, a private ROS domain, processes and a ROS client."""
+"""Workspace-level fixtures: loopback-only DDS, a private ROS domain, processes, a ROS client."""
 
 import os
 import pathlib

@@ -1,7 +1,6 @@
-"""The workspace itself: packaging a stock Jazzy install can build and run, bootstrap, CI, configs."""
+"""The workspace itself: packaging a stock Jazzy install can build, bootstrap, CI, configs."""
 
 import ast
-import pathlib
 import re
 import subprocess
 import xml.etree.ElementTree as ET
@@ -68,7 +67,7 @@ def test_params_files_are_keyed_by_their_node_name(path):
     assert (INSTALL / pkg / 'lib' / pkg / exe).exists(), f'{path.name}: no executable {exe}'
     params = data[node_name]['ros__parameters']
     for drive in params.get('drives', []):
-        assert f'drives.{drive}' in params, f'{path.name}: drive {drive} has no drives.{drive} block'
+        assert f'drives.{drive}' in params, f'{path.name}: no drives.{drive} block'
 
 
 def test_ci_runs_exactly_the_readme_test_command():
@@ -80,7 +79,9 @@ def test_ci_runs_exactly_the_readme_test_command():
 
 
 def test_every_script_keeps_dds_discovery_on_this_machine():
-    for path in [*(ROOT / 'scripts').glob('*.sh'), ROOT / '.ci' / 'run', ROOT / 'test' / 'conftest.py']:
+    scripts = [*(ROOT / 'scripts').glob('*.sh'), ROOT / '.ci' / 'run',
+               ROOT / 'test' / 'conftest.py']
+    for path in scripts:
         assert 'ROS_AUTOMATIC_DISCOVERY_RANGE' in path.read_text(), path
     for path in (ROOT / 'scripts').glob('*.py'):
         text = path.read_text()

@@ -135,7 +135,8 @@ def test_save_params_is_verified_by_the_stored_copy(bench):
     assert r.success, r.message
     new = r.value + 7
     r = bench.call('axis1', 'write_register',
-                   WriteRegister.Request(address='1093', data_type='u16', value=new), WriteRegister)
+                   WriteRegister.Request(address='1093', data_type='u16', value=new),
+                   WriteRegister)
     assert r.success, r.message
     assert not list(bench.storage.glob('*unit1*.json'))
     r = bench.call('axis1', 'save_params')
@@ -294,13 +295,15 @@ def test_move_to_and_homing_actions_give_feedback_and_result(bench):
     result = result_future.result().result
     assert result.success and 'homed' in result.message
     assert bench.status('axis1', lambda m: m.homed).homing_state == 'ATTAINED'
+    client.destroy()   # before the test's ROS client goes: its executor waits on them
+    home.destroy()
 
 
 def test_status_carries_address_and_diagnostics_identity(bench):
     st = bench.status('axis2')
     assert (st.vendor, st.address, st.joint_name) == ('X-PLUS MT', '2', 'xplus_joint2')
-    diag = bench.ros.wait_msg('/diagnostics', lambda a: any(s.name.endswith('axis2')
-                                                             for s in a.status))
+    diag = bench.ros.wait_msg('/diagnostics',
+                              lambda a: any(s.name.endswith('axis2') for s in a.status))
     (d,) = [s for s in diag.status if s.name.endswith('axis2')]
     keys = {kv.key: kv.value for kv in d.values}
     assert keys['state'] == 'SWITCH ON DISABLED' and keys['joint'] == 'xplus_joint2'

@@ -1,9 +1,9 @@
 """DriveNode: the one ROS layer every vendor node shares (ros_interface.md).
 
 One node per bus, one or more drives per bus. The vendor code below it (drive.py's Bus/Drive) is
-blocking and not re-entrant, so every call into it holds `bus_lock`. The poll timer reads every drive at
-publish_rate_hz and publishes joint_states and status; services may block (home waits for the result)
-but only hold the lock for each bus transaction, so joint_states keep flowing during a homing.
+blocking and not re-entrant, so every call into it holds `bus_lock`. The poll thread reads every
+drive at publish_rate_hz and publishes joint_states and status; services may block (home waits for
+the result) but hold the lock only per bus transaction, so joint_states flow during a homing.
 """
 
 from __future__ import annotations
@@ -235,8 +235,9 @@ class DriveNode(Node):
             h.reconnects += 1
             h.backoff_s = self.bus_params['reconnect_period_s']
         # After a (re)connect, report what the drive does; never resume a motion by itself.
-        self.log.info(f'{h.name}: connected ({", ".join(f"{k}={v}" for k, v in h.identity.items())});'
-                      f' state {h.state.state.value}, position {h.position:.6g}')
+        identity = ', '.join(f'{k}={v}' for k, v in h.identity.items())
+        self.log.info(f'{h.name}: connected ({identity}); state {h.state.state.value}, '
+                      f'position {h.position:.6g}')
         return True
 
     # ------------------------------------------------------------------------------ poll loop
@@ -339,7 +340,8 @@ class DriveNode(Node):
         m.address = str(h.drive.address)
         m.state = s.state.value
         m.connected = h.connected
-        m.enabled, m.moving, m.target_reached, m.homed = s.enabled, s.moving, s.target_reached, s.homed
+        m.enabled, m.moving, m.target_reached = s.enabled, s.moving, s.target_reached
+        m.homed = s.homed
         m.homing_state = s.homing.value
         m.mode = s.mode
         m.fault, m.fault_code, m.fault_text = s.fault, s.fault_code & 0xFFFFFFFF, s.fault_text
@@ -503,7 +505,8 @@ class DriveNode(Node):
         def do():
             h.velocity_deadline = None
             self.call(h, h.drive.stop)
-        return self._run(h, resp, do, lambda _: f'{h.name}: stopping with the profile deceleration')
+        return self._run(h, resp, do,
+                         lambda _: f'{h.name}: stopping with the profile deceleration')
 
     def run_homing(self, h: DriveHandle, feedback: Callable[[], None] | None = None,
                    cancelled: Callable[[], bool] = lambda: False) -> str:
@@ -555,7 +558,8 @@ class DriveNode(Node):
 
     def srv_save_params(self, h: DriveHandle, req, resp):
         return self._run(h, resp, lambda: self.call(h, h.drive.save_params),
-                         lambda note: f'{h.name}: parameters saved' + (f'; {note}' if note else ''))
+                         lambda note: f'{h.name}: parameters saved'
+                         + (f'; {note}' if note else ''))
 
     def srv_read_register(self, h: DriveHandle, req, resp):
         resp.value, resp.text = 0, ''
@@ -576,9 +580,8 @@ class DriveNode(Node):
                                f'(set drives.{h.name}.allow_raw_write: true)')
             value = req.text if req.data_type.lower() == 'string' else req.value
             self.call(h, h.drive.write_register, req.address, req.data_type, value)
-        return self._run(h, resp, do,
-                         lambda _: f'{req.address} ({req.data_type}) := '
-                                   f'{req.text if req.data_type.lower() == "string" else req.value}')
+        shown = req.text if req.data_type.lower() == 'string' else req.value
+        return self._run(h, resp, do, lambda _: f'{req.address} ({req.data_type}) := {shown}')
 
     # -------------------------------------------------------------------------------- actions
     def act_move_to(self, h: DriveHandle, goal_handle):
@@ -598,7 +601,8 @@ class DriveNode(Node):
                     goal_handle.canceled()
                     result.message, result.final_position = 'cancelled; drive stopped', h.position
                     return result
-                if (not s.moving and abs(s.position_steps - target_steps) <= TARGET_TOLERANCE_STEPS):
+                at_target = abs(s.position_steps - target_steps) <= TARGET_TOLERANCE_STEPS
+                if not s.moving and at_target:
                     break
                 if not s.moving and s.target_reached and h.polls > 0 and \
                         abs(s.position_steps - target_steps) > TARGET_TOLERANCE_STEPS:
@@ -689,7 +693,6 @@ class DriveNode(Node):
                 self.bus.close()
             except Exception:  # noqa: BLE001
                 pass
-
 
     def _shutdown_step(self, h: DriveHandle, fn: Callable, *args) -> None:
         try:

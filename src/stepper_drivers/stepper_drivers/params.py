@@ -1,9 +1,10 @@
 """Parameter declaration and validation for every vendor node.
 
-Each parameter is declared with a description and a range (rclpy checks ranges at declaration, params
-file included). Anything wrong ends start-up with one `ParameterError` line naming the parameter, the
-value and what is allowed. The result is plain dataclasses; the node keeps reading the runtime-changeable
-values (profile, limits, rates) from the node so `ros2 param set` takes effect at the next command.
+Each parameter is declared with a description and a range (rclpy checks ranges at declaration,
+params file included). Anything wrong ends start-up with one `ParameterError` line naming the
+parameter, the value and what is allowed. The result is plain dataclasses; the node keeps reading
+the runtime-changeable values (profile, limits, rates) from the node, so `ros2 param set` takes
+effect at the next command.
 """
 
 from __future__ import annotations
@@ -44,10 +45,11 @@ class P:
 # Bus-level parameters every node has; the vendor adds its transport settings.
 BUS_PARAMS = (
     P('timeout_s', 0.5, 'answer timeout of one transaction on the bus [s]', 0.001, 60.0),
-    P('publish_rate_hz', 50.0, 'rate of polling the drives and publishing joint_states/status [Hz]',
+    P('publish_rate_hz', 50.0, 'rate of polling the drives and publishing joint_states, status '
+      '[Hz]',
       0.1, 1000.0, read_only=False),
-    P('command_timeout_s', 0.5, 'velocity watchdog: a drive running from velocity_command stops when '
-      'no new command arrives within this time [s]', 0.01, 3600.0, read_only=False),
+    P('command_timeout_s', 0.5, 'velocity watchdog: a drive running from velocity_command stops '
+      'when no new command arrives within this time [s]', 0.01, 3600.0, read_only=False),
     P('reconnect_period_s', 1.0, 'first retry delay after the link drops; doubles up to 8x [s]',
       0.05, 600.0),
     P('diagnostics_rate_hz', 1.0, 'rate of /diagnostics [Hz]', 0.1, 50.0),
@@ -58,7 +60,8 @@ DRIVE_PARAMS = (
     P('joint_name', '', 'joint name in joint_states and joint_command (default: the drive name)'),
     P('steps_per_rev', 200.0, 'motor steps (micro-steps) per motor revolution', 1.0, 1e9),
     P('gear_ratio', 1.0, 'motor revolutions per output revolution', 1e-9, 1e9),
-    P('unit', 'rad', "joint unit: 'rad' (rotary) or 'm' (linear, needs lead_m)", choices=('rad', 'm')),
+    P('unit', 'rad', "joint unit: 'rad' (rotary) or 'm' (linear, needs lead_m)",
+      choices=('rad', 'm')),
     P('lead_m', 0.0, 'linear travel per output revolution for unit m [m]', 0.0, 1e3),
     P('min_position', -1e9, 'lowest position a command may ask for [rad or m]', -INF, INF,
       read_only=False),
@@ -66,7 +69,8 @@ DRIVE_PARAMS = (
       read_only=False),
     P('max_velocity', 10.0, 'largest velocity a command may ask for [rad/s or m/s]', 0.0, 1e9,
       read_only=False),
-    P('max_acceleration', 100.0, 'largest acceleration/deceleration of a profile [rad/s^2 or m/s^2]',
+    P('max_acceleration', 100.0, 'largest acceleration/deceleration of a profile '
+      '[rad/s^2 or m/s^2]',
       0.0, 1e12, read_only=False),
     P('profile_velocity', 1.0, 'velocity of position moves [rad/s or m/s]', 0.0, 1e9,
       read_only=False),
@@ -122,7 +126,8 @@ def _allowed(p: P | ParamSpec) -> str:
     return kind + lo + hi
 
 
-_TYPE_NAMES = {ParameterType.PARAMETER_BOOL: 'a boolean', ParameterType.PARAMETER_INTEGER: 'an integer',
+_TYPE_NAMES = {ParameterType.PARAMETER_BOOL: 'a boolean',
+               ParameterType.PARAMETER_INTEGER: 'an integer',
                ParameterType.PARAMETER_DOUBLE: 'a floating point number',
                ParameterType.PARAMETER_STRING: 'a string',
                ParameterType.PARAMETER_STRING_ARRAY: 'a list of strings'}
@@ -145,7 +150,7 @@ def declare(node: Node, full_name: str, p: P | ParamSpec, default: Any = None) -
         got = node._parameter_overrides[full_name].value
         raise ParameterError(
             f'parameter {full_name}: {got!r} is out of range (allowed: {_allowed(p)})') from None
-    except InvalidParameterTypeException as e:
+    except InvalidParameterTypeException:
         got = node._parameter_overrides[full_name]
         want = _TYPE_NAMES.get(Parameter.Type.from_parameter_value(default).value, 'valid')
         raise ParameterError(f'parameter {full_name}: {got.value!r} is not {want} '

@@ -11,7 +11,8 @@ from stepper_drivers.params import ParameterError, declare_all
 VENDOR = Vendor(
     name='TEST', make_bus=None, make_drive=None,
     params=(ParamSpec('port', 502, 'TCP port', scope='bus', min_value=1, max_value=65535),
-            ParamSpec('word_order', 'little', 'word order', scope='bus', choices=('little', 'big')),
+            ParamSpec('word_order', 'little', 'word order', scope='bus',
+                      choices=('little', 'big')),
             ParamSpec('unit_id', 1, 'unit id', min_value=0, max_value=255)),
     drive_defaults={'steps_per_rev': 12800.0})
 
@@ -57,16 +58,21 @@ def test_good_file_gives_config(tmp_path):
 
 
 @pytest.mark.parametrize('edit, message', [
-    (('port: 1502', 'port: 70000'), r'parameter port: 70000 is out of range \(allowed: an integer from 1 to 65535\)'),
+    (('port: 1502', 'port: 70000'),
+     r'parameter port: 70000 is out of range \(allowed: an integer from 1 to 65535\)'),
     (('port: 1502', "port: 'x'"), r"parameter port: 'x' is not an integer"),
     (('unit_id: 3', 'unit_id: 256'), r'parameter drives.axis1.unit_id: 256 is out of range'),
     (('lead_m: 0.01', 'lead_m: 0.0'), r'parameter drives.axis2.lead_m: 0.0 must be > 0'),
-    (('unit: m', 'unit: deg'), r"parameter drives.axis2.unit: 'deg' is not allowed \(allowed: one of rad, m\)"),
+    (('unit: m', 'unit: deg'),
+     r"parameter drives.axis2.unit: 'deg' is not allowed \(allowed: one of rad, m\)"),
     (('max_velocity: 10', 'max_velocity: -1'), r'drives.axis1.max_velocity: -1.0 is out of range'),
-    (('max_velocity: 10', 'max_velocity: 0.5'), r'drives.axis1.profile_velocity: 1.0 exceeds drives.axis1.max_velocity'),
+    (('max_velocity: 10', 'max_velocity: 0.5'),
+     r'drives.axis1.profile_velocity: 1.0 exceeds drives.axis1.max_velocity'),
     (('drives: [axis1, axis2]', 'drives: [axis1, axis1]'), r'names a drive twice'),
-    (('drives: [axis1, axis2]', 'drives: [axis1, axis2]\n    drive_typo: 1'), r'parameter drive_typo: unknown parameter'),
-    (('joint_name: j1', 'joint_name: j1\n      max_velocty: 3.0'), r'drives.axis1.max_velocty: unknown parameter'),
+    (('drives: [axis1, axis2]', 'drives: [axis1, axis2]\n    drive_typo: 1'),
+     r'parameter drive_typo: unknown parameter'),
+    (('joint_name: j1', 'joint_name: j1\n      max_velocty: 3.0'),
+     r'drives.axis1.max_velocty: unknown parameter'),
 ])
 def test_bad_value_is_one_line_naming_parameter_value_and_range(tmp_path, edit, message):
     with pytest.raises(ParameterError, match=message) as e:
@@ -75,7 +81,8 @@ def test_bad_value_is_one_line_naming_parameter_value_and_range(tmp_path, edit, 
 
 
 def test_min_above_max_is_refused(tmp_path):
-    text = GOOD.replace('joint_name: j1', 'joint_name: j1\n      min_position: 5.0\n      max_position: 1.0')
+    text = GOOD.replace('joint_name: j1',
+                        'joint_name: j1\n      min_position: 5.0\n      max_position: 1.0')
     with pytest.raises(ParameterError, match='drives.axis1.min_position: 5.0 must be below'):
         declare_from(tmp_path, text)
 

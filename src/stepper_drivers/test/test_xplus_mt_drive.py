@@ -14,20 +14,10 @@ from stepper_drivers.drive import (DriveError, Homing, HomingState, LinkError, M
 from stepper_drivers.vendors import xplus_mt_map as xm
 from stepper_drivers.vendors.xplus_mt import VENDOR, XplusMtDrive
 from stepper_sim.xplus_mt_sim import XplusMtDriveConfig, XplusMtSim
+from stepper_drivers.tools.processes import wait_for
 
 FAST = Motion(velocity_steps_s=100_000, acceleration_steps_s2=2_000_000,
               deceleration_steps_s2=2_000_000)
-
-
-def wait_for(cond, timeout_s=5.0, period_s=0.01):
-    deadline = time.monotonic() + timeout_s
-    while True:
-        result = cond()
-        if result:
-            return result
-        if time.monotonic() > deadline:
-            raise AssertionError(f'condition not met within {timeout_s} s')
-        time.sleep(period_s)
 
 
 def drives_config():

@@ -13,6 +13,7 @@ from pymodbus.client import ModbusTcpClient
 from pymodbus.exceptions import ModbusException
 
 from stepper_sim.xplus_mt_sim import XplusMtDriveConfig, XplusMtSim
+from stepper_drivers.tools.processes import wait_for
 
 SW, CW, MODE, DISPLAY = 1001, 1040, 1041, 1002
 POS, VEL, ERR_REG, ERR_CODE = 1004, 1020, 1006, 1007
@@ -29,17 +30,6 @@ def value32(words, order: str = 'little', signed: bool = True) -> int:
     low, high = (words[0], words[1]) if order == 'little' else (words[1], words[0])
     raw = high << 16 | low
     return raw - (1 << 32) if signed and raw & 0x80000000 else raw
-
-
-def wait_for(cond, timeout_s: float = 5.0, period_s: float = 0.01):
-    deadline = time.monotonic() + timeout_s
-    while True:
-        result = cond()
-        if result:
-            return result
-        if time.monotonic() > deadline:
-            raise AssertionError(f'condition not met within {timeout_s} s')
-        time.sleep(period_s)
 
 
 class Client:
@@ -442,7 +432,7 @@ def test_link_faults_through_the_proxy(sim):
 
         wait_for(lambda: not reconnect(), 2.0, 0.05)    # refused while cut
         assert sim.inject_fault('', 'link_ok')[0]
-        wait_for(reconnect, 2.0, 0.05)
+        wait_for(reconnect, 2.0, period_s=0.05)
         assert c.sw() == 0x0270
     finally:
         c.close()

@@ -1,7 +1,8 @@
 """Start project executables as real processes (demo, benchmarks, tests).
 
-`Proc`: a process in its own process group, output captured to a file, waited on by evidence (a line
-it prints), stopped by its own PID with SIGINT (SIGKILL only if it does not end). No rclpy here.
+`Proc`: a process in its own process group, output captured to a file, waited on by evidence
+(a line it prints), stopped by its own PID with SIGINT (SIGKILL only if it does not end).
+No rclpy here.
 """
 
 from __future__ import annotations
@@ -11,7 +12,6 @@ import pathlib
 import signal
 import socket
 import subprocess
-import threading
 import time
 from typing import Any, Callable
 
@@ -44,7 +44,7 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def wait_for(cond: Callable[[], Any], timeout_s: float, what: str = 'condition',
+def wait_for(cond: Callable[[], Any], timeout_s: float = 5.0, what: str = 'condition',
              period_s: float = 0.01) -> Any:
     """Poll cond until it returns something truthy; fail naming `what` after timeout_s."""
     deadline = time.monotonic() + timeout_s
