@@ -383,10 +383,7 @@ def main() -> int:
         demo.stop_all()
         for p in demo.procs:
             p.kill()
-        ros.executor.shutdown(timeout_sec=2.0)     # spin thread first, then the node
-        ros.thread.join(timeout=5)
-        ros.node.destroy_node()
-        ros.rclpy.try_shutdown(context=ros.context)
+        ros.close()
     plot_path = pathlib.Path(args.plot)
     try:
         plot(demo, plot_path)

@@ -93,13 +93,7 @@ class Graph:
         self._action_clients: dict[tuple, Any] = {}
 
     def close(self) -> None:
-        # As RosClient.close(), but the spin thread ends before the node is destroyed: a
-        # callback still running on a destroyed subscription logs 'cannot use Destroyable'.
-        ros = self.ros
-        ros.executor.shutdown(timeout_sec=2.0)
-        ros.thread.join(timeout=5)
-        ros.node.destroy_node()
-        ros.rclpy.try_shutdown(context=ros.context)
+        self.ros.close()
 
     # --------------------------------------------------------------------------- discovery
     def drive_refs(self) -> list[DriveRef]:

@@ -7,6 +7,9 @@ from typing import Any, Callable
 
 from .processes import wait_for
 
+# How long one spin_once waits for work: also how soon close() ends the spin thread.
+SPIN_PERIOD_S = 0.05
+
 
 class RosClient:
     """One rclpy node with a background executor, for tests."""
@@ -20,7 +23,11 @@ class RosClient:
         self.node = rclpy.create_node(name, context=self.context)
         self.executor = MultiThreadedExecutor(num_threads=2, context=self.context)
         self.executor.add_node(self.node)
-        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
+        # Our own spin loop, so close() can stop it and join the thread *before* the executor is
+        # shut down: executor.shutdown() under a running spin() destroys a guard condition the spin
+        # thread may still trigger (rclpy InvalidHandle 'cannot use Destroyable').
+        self._stop = threading.Event()
+        self.thread = threading.Thread(target=self._spin, daemon=True)
         self.thread.start()
         self.latest: dict[str, Any] = {}
         self.history: dict[str, list] = {}
@@ -71,9 +78,14 @@ class RosClient:
                      f'a subscriber on {topic}')
         self._pubs[topic].publish(msg)
 
+    def _spin(self) -> None:
+        while not self._stop.is_set() and self.context.ok():
+            self.executor.spin_once(timeout_sec=SPIN_PERIOD_S)
+
     def close(self) -> None:
-        # Stop spinning and wait for the spin thread before destroying what it waits on.
-        self.executor.shutdown(timeout_sec=2.0)
+        """Stop the spin thread, then the executor, then the node (the only safe order)."""
+        self._stop.set()
         self.thread.join(timeout=5)
+        self.executor.shutdown(timeout_sec=2.0)
         self.node.destroy_node()
         self.rclpy.try_shutdown(context=self.context)
