@@ -16,12 +16,15 @@ class RosClient:
 
     def __init__(self, name: str = 'test_client'):
         import rclpy
-        from rclpy.executors import MultiThreadedExecutor
+        from rclpy.executors import SingleThreadedExecutor
         self.rclpy = rclpy
         self.context = rclpy.Context()
         rclpy.init(context=self.context)
         self.node = rclpy.create_node(name, context=self.context)
-        self.executor = MultiThreadedExecutor(num_threads=2, context=self.context)
+        # Single-threaded: every callback runs inside _spin's spin_once, so once that thread is
+        # joined nothing can touch an entity. (MultiThreadedExecutor.shutdown in the jazzy wheels
+        # does not wait for its pool: a late task triggers a destroyed guard condition.)
+        self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         # Our own spin loop, so close() can stop it and join the thread *before* the executor is
         # shut down: executor.shutdown() under a running spin() destroys a guard condition the spin
