@@ -15,7 +15,6 @@ import time
 import traceback
 from typing import Any, Callable
 
-from action_msgs.msg import GoalStatus  # noqa: F401  (imported so the action types resolve early)
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 import rclpy
 from rclpy.action import ActionServer, CancelResponse, GoalResponse

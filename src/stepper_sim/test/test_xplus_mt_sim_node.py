@@ -1,12 +1,8 @@
 """The real `xplus_mt_sim` executable: ready line, ROS services and topic, Modbus, SIGINT -> 0."""
 
-import os
 import pathlib
-import queue
 import signal
-import socket
 import subprocess
-import threading
 import time
 
 import pytest
@@ -14,52 +10,12 @@ import rclpy
 from pymodbus.client import ModbusTcpClient
 from rclpy.executors import SingleThreadedExecutor
 from std_msgs.msg import Float64
+from stepper_drivers.tools.processes import free_port, Proc
 from stepper_drivers_msgs.srv import InjectFault, SetInput
 
 WS = pathlib.Path(__file__).resolve().parents[3]
 EXE = WS / 'install' / 'stepper_sim' / 'lib' / 'stepper_sim' / 'xplus_mt_sim'
 PARAMS = WS / 'config' / 'xplus_mt_sim.yaml'
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(('127.0.0.1', 0))
-        return s.getsockname()[1]
-
-
-class Process:
-    """The simulator in its own process group, its output collected line by line."""
-
-    def __init__(self, args):
-        self.proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                                     text=True, start_new_session=True, cwd=WS)
-        self.lines: queue.Queue = queue.Queue()
-        self.output: list[str] = []
-        self._reader = threading.Thread(target=self._read, daemon=True)
-        self._reader.start()
-
-    def _read(self):
-        for line in self.proc.stdout:
-            self.lines.put(line.rstrip('\n'))
-
-    def wait_line(self, text: str, timeout_s: float) -> str:
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            try:
-                line = self.lines.get(timeout=max(deadline - time.monotonic(), 0.01))
-            except queue.Empty:
-                break
-            self.output.append(line)
-            if text in line:
-                return line
-        raise AssertionError(f'no line with {text!r} within {timeout_s} s; output:\n'
-                             + '\n'.join(self.output))
-
-    def kill(self):
-        if self.proc.poll() is None:
-            os.killpg(self.proc.pid, signal.SIGKILL)
-            self.proc.wait(5)
-        self._reader.join(5)
 
 
 @pytest.fixture
@@ -84,12 +40,13 @@ def call(node, executor, srv_type, name, request):
     return future.result()
 
 
-def test_executable_ready_services_modbus_and_sigint(ros):
+def test_executable_ready_services_modbus_and_sigint(ros, tmp_path):
     if not EXE.exists():
         pytest.fail(f'{EXE} missing: run scripts/bootstrap.sh')
     node, executor = ros
     port = free_port()
-    sim = Process([str(EXE), '--ros-args', '--params-file', str(PARAMS), '-p', f'port:={port}'])
+    sim = Proc([str(EXE), '--ros-args', '--params-file', str(PARAMS), '-p', f'port:={port}'],
+               tmp_path, 'xplus_mt_sim')
     try:
         sim.wait_line(f'xplus_mt_sim: ready on 127.0.0.1:{port}', 20.0)
         mb = ModbusTcpClient('127.0.0.1', port=port, timeout=1.0, retries=0)
@@ -124,8 +81,7 @@ def test_executable_ready_services_modbus_and_sigint(ros):
         assert di[0] & 0x0004 and di[1] & 0x0001          # PX (bit 2) and I0 (bit 16)
         mb.close()
 
-        os.killpg(sim.proc.pid, signal.SIGINT)
-        assert sim.proc.wait(timeout=15) == 0
+        assert sim.stop(signal.SIGINT, timeout_s=15) == 0
     finally:
         sim.kill()
 
