@@ -48,6 +48,17 @@ class Monitor:
     def since(self, mark, cob=None):
         return [(c, d) for c, d in self.frames[mark:] if cob is None or c == cob]
 
+    def wait_seen(self, mark, frame, timeout_s=5.0):
+        """The notifier thread records asynchronously: wait for a frame instead of racing it."""
+        wait(lambda: frame in self.since(mark), timeout_s, f'frame {frame} on the bus')
+        return self.since(mark)
+
+    def catch_up(self, node_id=1, timeout_s=5.0):
+        """Wait until two heartbeats of a node arrive after this call; the broker forwards in
+        order, so every frame sent before the call has then been recorded (for 'not sent')."""
+        start = len(self.frames)
+        wait(lambda: len(self.since(start, 0x700 + node_id)) >= 2, timeout_s, 'heartbeats')
+
     def close(self):
         self.notifier.stop()
         self.bus.shutdown()
@@ -122,6 +133,7 @@ def test_connect_configures_the_node_and_reads_state_from_pdos_only(bench):
     for _ in range(20):
         s = d.read_state()
     assert s.state == State.SWITCH_ON_DISABLED and not s.enabled and s.mode == 'PROFILE POSITION'
+    bench.monitor.catch_up()
     assert not bench.monitor.since(mark, 0x601), 'read_state() must not use SDO'
 
 
@@ -162,6 +174,7 @@ def test_jog_reverses_and_stops_on_bit_4(bench):
     d.set_velocity(0.0, MOTION)
     s = settle(d)
     assert s.enabled and s.velocity_steps_s == 0.0
+    bench.monitor.catch_up()
     assert not bench.monitor.since(mark, 0x601), 'JOG stop is the controlword, not an SDO'
 
 
@@ -172,7 +185,7 @@ def test_stop_in_profile_position_uses_the_rcmdwr_stop_bit(bench):
     wait(lambda: d.read_state().position_steps > 3000, what='moving')
     mark = bench.monitor.mark()
     d.stop()
-    assert (0x601, bytes.fromhex('2B 3B 20 01 08 00 00 00')) in bench.monitor.since(mark)
+    bench.monitor.wait_seen(mark, (0x601, bytes.fromhex('2B 3B 20 01 08 00 00 00')))
     s = settle(d)
     assert s.enabled and s.position_steps < 320000
 
@@ -183,7 +196,7 @@ def test_homing_on_bls_writes_the_raw_method_and_forces_the_offset(bench):
     mark = bench.monitor.mark()
     note = d.start_homing(Homing(-1, 500, 6400.0, 1600.0, 64000.0))
     assert 'BLS, negative direction' in note
-    assert (0x601, bytes.fromhex('2F 98 60 00 FF 00 00 00')) in bench.monitor.since(mark)
+    bench.monitor.wait_seen(mark, (0x601, bytes.fromhex('2F 98 60 00 FF 00 00 00')))
     assert d.read_state().homing == HomingState.RUNNING
     s = wait(lambda: (lambda s: s if s.homing != HomingState.RUNNING else None)(
         d.read_state()), 10.0, 'homing result')
@@ -220,6 +233,7 @@ def test_fault_emcy_text_and_the_manuals_reset_order(bench):
     bench.sim.inject_fault('axis1', 'clear_fault', 0, 0)
     mark = bench.monitor.mark()
     assert d.fault_reset() == ''
+    bench.monitor.catch_up()
     frames = bench.monitor.since(mark)
     clear = frames.index((0x601, bytes.fromhex('2F 03 10 00 00 00 00 00')))
     edge = next(i for i, (cob, data) in enumerate(frames) if cob in (0x201, 0x301) and
