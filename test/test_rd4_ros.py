@@ -112,6 +112,15 @@ def test_jog_stops_by_the_node_watchdog(bench):
     assert bench.settled('axis2') == st.position_steps
 
 
+def test_publish_rate_too_slow_for_the_drive_watchdog_is_refused_at_runtime(bench):
+    (r,) = bench.set_params(('publish_rate_hz', 2.0))
+    assert not r.successful
+    assert 'watchdog' in r.reason and 'publish_rate_hz >= 5' in r.reason, r.reason
+    (r,) = bench.set_params(('publish_rate_hz', 20.0))     # fast enough: taken
+    assert r.successful, r.reason
+    bench.node.wait_line('parameter publish_rate_hz := 20.0', 5.0)
+
+
 def test_home_is_a_preset(bench):
     bench.enable('axis1')
     bench.command('axis1', 'position_command', 2.0)

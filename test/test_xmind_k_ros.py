@@ -200,9 +200,8 @@ def test_fault_reset_refused_power_cycle_and_save_params(bench):
     r = bench.call('axis1', 'read_register', ReadRegister.Request(address='QS,RD', data_type='u8'),
                    ReadRegister)
     assert r.success and r.value == 10, r.message
-    r = bench.call('axis1', 'read_register', ReadRegister.Request(address='QM,228',
-                                                                   data_type='string'),
-                   ReadRegister)
+    req = ReadRegister.Request(address='QM,228', data_type='string')
+    r = bench.call('axis1', 'read_register', req, ReadRegister)
     assert r.success and r.text == '01QM,228,00,000', r.text
     r = bench.call('axis1', 'write_register',
                    WriteRegister.Request(address='SO,O2', data_type='u8', value=1), WriteRegister)

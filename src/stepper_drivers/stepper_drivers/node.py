@@ -641,6 +641,15 @@ class DriveNode(Node):
     # ----------------------------------------------------------------------------- parameters
     def on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
         """Validate runtime changes (ranges are checked by rclpy); cross-field rules here."""
+        bus_changes = {p.name: p.value for p in params if p.name in self.bus_params}
+        if bus_changes:
+            # vendor rules that tie a drive to the poll rate (RD4: the 1 s watchdog must be fed)
+            for h in self.handles.values():
+                try:
+                    self.vendor.make_drive(self.bus, h.name, {**self.bus_params, **bus_changes,
+                                                              **h.cfg.params})
+                except ValueError as e:
+                    return SetParametersResult(successful=False, reason=str(e))
         for h in self.handles.values():
             prefix = f'drives.{h.name}.'
             mine = {p.name[len(prefix):]: p.value for p in params if p.name.startswith(prefix)}

@@ -61,8 +61,9 @@ NMT_OPERATIONAL = 0x05
 NMT_PRE_OPERATIONAL = 0x7F
 NMT_NAMES = {NMT_INITIALISING: 'INITIALISING', NMT_STOPPED: 'STOPPED',
              NMT_OPERATIONAL: 'OPERATIONAL', NMT_PRE_OPERATIONAL: 'PRE-OPERATIONAL'}
-BOOTUP_TO_HEARTBEAT_S = 0.010        # transports.md A5.3.6: a heartbeat right behind the boot-up
-                                     # hides it from NmtMaster.wait_for_bootup()
+# transports.md A5.3.6: a heartbeat right behind the boot-up hides it from
+# NmtMaster.wait_for_bootup()
+BOOTUP_TO_HEARTBEAT_S = 0.010
 SAVE_TIME_S = 0.15                   # Rloadsav 0x81 busy time (EEPROM write)
 DEFAULT_MAX_TRAVEL_STEPS = 50 * 3200
 
@@ -1058,8 +1059,8 @@ class VectorStepNode:
         self.home_error_latched = False
         self.rhsts = vm.RHSTS_IN_PROGRESS
         if method in vm.HARD_STOP_METHODS:
-            self._homing_failed(vm.RHSTS_FOC_OPEN, f'method {method} needs SmartMode or '
-                                                    'closed loop (simulated drive is open loop)')
+            self._homing_failed(vm.RHSTS_FOC_OPEN, f'method {method} needs SmartMode or closed '
+                                'loop (simulated drive is open loop)')
             return
         search = self._stored(vm.HOMING_SPEEDS, 1)
         zero = self._stored(vm.HOMING_SPEEDS, 2)
@@ -1115,8 +1116,8 @@ class VectorStepNode:
 
     def _on_axis_event(self, event: AxisEvent) -> None:
         """Limit switch reached while moving towards it (outside homing): stop on the ramp."""
-        if self.homing is not None or not event.active or event.name not in (LIMIT_NEG,
-                                                                               LIMIT_POS):
+        if self.homing is not None or not event.active or \
+                event.name not in (LIMIT_NEG, LIMIT_POS):
             return
         toward = (event.name == LIMIT_POS and event.direction > 0) or \
             (event.name == LIMIT_NEG and event.direction < 0)

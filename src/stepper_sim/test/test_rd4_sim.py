@@ -172,8 +172,8 @@ def test_holes_and_read_only_registers(line, client):
     with ln.lock:
         assert ln.unit('axis1').get('OFFSET') == 0
     ln.stop()
-    ln = line(Rd4Unit('axis1', 1, options=Rd4Options(hole_policy='exception',
-                                                      ro_write_policy='exception')))
+    strict = Rd4Options(hole_policy='exception', ro_write_policy='exception')
+    ln = line(Rd4Unit('axis1', 1, options=strict))
     c = client(ln)
     assert c.ask(add_crc(h('01 03 00 19 00 02')), 5) == h('01 83 02 C0 F1')
     assert c.ask(add_crc(h('01 06 00 18 00 30')), 5) == h('01 86 02 C3 A1')

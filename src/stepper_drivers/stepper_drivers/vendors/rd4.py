@@ -458,8 +458,8 @@ class Rd4Drive(Drive):
             except ValueError:
                 raise DriveError(f'register {address!r}: not a number or an RD4 register name '
                                  "(e.g. '0x2A', 'hr:0x2A', 'ir:0x02', 'CONTROL_WORD')") from None
-        by_address = {r.address: r for r in (rm.HOLDING_REGISTERS if table == rm.HOLDING
-                                              else rm.INPUT_REGISTERS)}
+        registers = rm.HOLDING_REGISTERS if table == rm.HOLDING else rm.INPUT_REGISTERS
+        by_address = {r.address: r for r in registers}
         second = {r.address + 1: r for r in by_address.values() if r.words == 2}
         end = rm.HOLDING_END if table == rm.HOLDING else rm.INPUT_END
         if not 0 <= number <= end - words + 1:

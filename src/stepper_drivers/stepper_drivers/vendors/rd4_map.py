@@ -259,6 +259,7 @@ NOT_RESETTABLE = ALARM_FLASH_MEMORY_ERROR | ALARM_AXIS_NOT_SYNCHRONIZED
 WRONG_PARAMETER_BITS: Mapping[int, str] = {
     r.wp_bit: r.name for r in HOLDING_REGISTERS if r.wp_bit is not None}
 
+
 # ------------------------------------------------------------------------- models and limits
 @dataclasses.dataclass(frozen=True)
 class Model:
@@ -414,8 +415,8 @@ def find_register(text: str) -> Register | None:
 def describe_hw_version(value: int) -> str:
     """HW Version [0x0F] fields (§8.1.2): bits 0-3 HW version, 7 brake, 8-11 interface,
     12-15 ROTADRIVE model."""
-    interface = {0: 'Modbus', 1: 'Profibus', 2: 'CANopen'}.get((value >> 8) & 0xF,
-                                                                 f'interface {(value >> 8) & 0xF}')
+    code = (value >> 8) & 0xF
+    interface = {0: 'Modbus', 1: 'Profibus', 2: 'CANopen'}.get(code, f'interface {code}')
     model = {0: 'RD4', 1: 'RD1xA', 2: 'RD5'}.get((value >> 12) & 0xF,
                                                  f'model {(value >> 12) & 0xF}')
     brake = 'with brake' if value & 0x80 else 'without brake'

@@ -719,8 +719,8 @@ class XmindKDrive(drive.Drive):
             raise DriveError(f'drive {self.number:02d} is busy: it answers no data request '
                              'until its program ends (§3, §4.4.3)')
         try:
-            frame = xk.Frame(self.number, code, tuple(int(a) if a.isdigit() else a
-                                                       for a in args))
+            values = tuple(int(a) if a.isdigit() else a for a in args)
+            frame = xk.Frame(self.number, code, values)
             xk.encode_request(frame)
         except (xk.ProtocolError, IndexError, TypeError) as e:
             raise DriveError(f'{address!r}: {e}') from None
