@@ -270,11 +270,12 @@ def test_move_to_and_homing_actions_give_feedback_and_result(bench):
     client = ActionClient(bench.ros.node, MoveTo, NODE + '/axis1/move_to')
     assert client.wait_for_server(timeout_sec=10)
     done = threading.Event()
-    goal_future = client.send_goal_async(MoveTo.Goal(position=4.0),
-                                         feedback_callback=lambda f: feedback.append(f.feedback))
+    # in_spin: rclpy's ActionClient races its own executor when called from another thread
+    goal_future = bench.ros.in_spin(client.send_goal_async, MoveTo.Goal(position=4.0),
+                                    feedback_callback=lambda f: feedback.append(f.feedback))
     goal_future.add_done_callback(lambda _f: done.set())
     assert done.wait(10) and goal_future.result().accepted
-    result_future = goal_future.result().get_result_async()
+    result_future = bench.ros.in_spin(goal_future.result().get_result_async)
     got = threading.Event()
     result_future.add_done_callback(lambda _f: got.set())
     assert got.wait(20)
@@ -285,10 +286,10 @@ def test_move_to_and_homing_actions_give_feedback_and_result(bench):
     home = ActionClient(bench.ros.node, Home, NODE + '/axis1/homing')
     assert home.wait_for_server(timeout_sec=10)
     done.clear()
-    goal_future = home.send_goal_async(Home.Goal())
+    goal_future = bench.ros.in_spin(home.send_goal_async, Home.Goal())
     goal_future.add_done_callback(lambda _f: done.set())
     assert done.wait(10) and goal_future.result().accepted
-    result_future = goal_future.result().get_result_async()
+    result_future = bench.ros.in_spin(goal_future.result().get_result_async)
     got.clear()
     result_future.add_done_callback(lambda _f: got.set())
     assert got.wait(30)

@@ -247,13 +247,13 @@ def cmd_move(g: Graph, args) -> int:
     client = g.action_client(ref, 'move_to', MoveTo)
     target, start = args.position, st.position
     span = abs(target - start) or 1.0
-    goal_future = client.send_goal_async(MoveTo.Goal(position=target))
+    goal_future = g.ros.in_spin(client.send_goal_async, MoveTo.Goal(position=target))
     if not _wait_future(goal_future, 5.0):
         raise CliError(EXIT_TIMEOUT, f'{ref.label}: move_to goal not answered within 5 s')
     handle = goal_future.result()
     if not handle.accepted:
         raise failed(g, ref, f'move to {target:g}: goal rejected')
-    result_future = handle.get_result_async()
+    result_future = g.ros.in_spin(handle.get_result_async)
     done = threading.Event()
     result_future.add_done_callback(lambda _f: done.set())
     live = Live(period_s=1.0)
@@ -267,14 +267,14 @@ def cmd_move(g: Graph, args) -> int:
                           f'at {m.position:+.4f} -> {target:+.4f}  {m.state}', now)
             if now >= deadline:
                 live.end()
-                cancel = handle.cancel_goal_async()      # the node stops the drive
+                cancel = g.ros.in_spin(handle.cancel_goal_async)   # the node stops the drive
                 _wait_future(cancel, 5.0)
                 pos = m.position if m is not None else float('nan')
                 raise CliError(EXIT_TIMEOUT, f'{ref.label}: target {target:g} not reached within '
                                f'{args.timeout:g} s (--timeout), at {pos:.4f}; drive stopped')
     except KeyboardInterrupt:
         live.end()
-        _wait_future(handle.cancel_goal_async(), 5.0)
+        _wait_future(g.ros.in_spin(handle.cancel_goal_async), 5.0)
         stop_quietly(g, ref)
         raise CliError(EXIT_INTERRUPTED, f'{ref.label}: interrupted; drive stopped') from None
     result = result_future.result().result

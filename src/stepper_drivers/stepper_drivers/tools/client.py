@@ -74,6 +74,22 @@ class RosClient:
             raise AssertionError(f'service {name} did not answer within {timeout_s} s')
         return future.result()
 
+    def in_spin(self, fn: Callable, *args, timeout_s: float = 5.0, **kwargs) -> Any:
+        """Run fn in the spin thread and return its result.
+
+        rclpy's ActionClient (jazzy 7.1) sends a goal, cancel or result request *before* it
+        registers the sequence number; called from another thread while the executor spins, a
+        quick answer is taken first and dropped ('Ignoring unexpected goal response') and the
+        future never completes. Calling send_goal_async, cancel_goal_async and get_result_async
+        through here makes send + register atomic for the executor."""
+        task = self.executor.create_task(fn, *args, **kwargs)
+        done = threading.Event()
+        task.add_done_callback(lambda _t: done.set())
+        if not done.wait(timeout_s):
+            raise TimeoutError(f'{getattr(fn, "__name__", fn)} did not run within {timeout_s} s '
+                               '(is the spin thread alive?)')
+        return task.result()
+
     def publish(self, msg_type, topic: str, msg) -> None:
         if topic not in self._pubs:
             self._pubs[topic] = self.node.create_publisher(msg_type, topic, 10)
