@@ -321,16 +321,23 @@ class VectorStepDrive(Drive):
         if int(values.get(vm.ERROR_REGISTER, 0)) & vm.ERROR_REGISTER_COMMUNICATION and \
                 emcy is not None and 0x8100 <= emcy.code <= 0x82FF:
             extra.append(f'EMCY 0x{emcy.code:04X}: {emcy.text}')
+        moving = bool(sw & vm.SW_BIT_MOTOR_MOVING)
+        velocity_hz = vm.hz_from_rps100(int(values.get(vm.VELOCITY_ACTUAL_VALUE, 0)),
+                                        self.steps_per_rev)
+        if not moving:
+            # Every TxPDO carries the statusword, only TxPDO3 the velocity: a read between the
+            # frames of one stop would pair the new standstill with the last speed. Bit 8
+            # ("Motor moving", theoretical) off means the profile velocity is zero.
+            velocity_hz = 0.0
         return DriveState(
             state=state, enabled=state == State.OPERATION_ENABLED,
-            moving=bool(sw & vm.SW_BIT_MOTOR_MOVING),
+            moving=moving,
             target_reached=bool(sw & cia402.SW_BIT_TARGET_REACHED),
             homed=bool(rstsflg & vm.RSTSFLG_HOMED), homing=homing, fault=fault,
             fault_code=code, fault_text=text, alarms=tuple(extra),
             mode=vm.MODE_NAMES.get(mode, f'mode {mode}'), status_word=sw,
             position_steps=int(values.get(vm.POSITION_ACTUAL_VALUE, 0)),
-            velocity_steps_s=vm.hz_from_rps100(int(values.get(vm.VELOCITY_ACTUAL_VALUE, 0)),
-                                               self.steps_per_rev))
+            velocity_steps_s=velocity_hz)
 
     def _homing_state(self, sw: int, mode: int) -> HomingState:
         """AEC homing bits: 12 "Home eseguito", 13 "Errore in azzeramento" ([STATUSWORD]).
