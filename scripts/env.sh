@@ -4,8 +4,8 @@ _stepper_root=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 # Fast DDS multicasts discovery on every interface by default; keep it on this machine.
 # On a robot with several hosts, export ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET (see README).
 export ROS_AUTOMATIC_DISCOVERY_RANGE=${ROS_AUTOMATIC_DISCOVERY_RANGE:-LOCALHOST}
-if [ -f /opt/ros/jazzy/setup.bash ] && [ "${STEPPER_FORCE_PIP_ROS:-0}" != 1 ]; then
-    source /opt/ros/jazzy/setup.bash
+if [ -f "${STEPPER_SYSTEM_ROS:-/opt/ros/jazzy}/setup.bash" ] && [ "${STEPPER_FORCE_PIP_ROS:-0}" != 1 ]; then
+    source "${STEPPER_SYSTEM_ROS:-/opt/ros/jazzy}/setup.bash"
 else
     export AMENT_PREFIX_PATH="$_stepper_root/.venv${AMENT_PREFIX_PATH:+:$AMENT_PREFIX_PATH}"
 fi

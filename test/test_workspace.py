@@ -1,8 +1,11 @@
 """The workspace itself: packaging a stock Jazzy install can build, bootstrap, CI, configs."""
 
 import ast
+import os
+import pathlib
 import re
 import subprocess
+import sysconfig
 import xml.etree.ElementTree as ET
 
 import pytest
@@ -95,3 +98,63 @@ def test_a_second_bootstrap_has_nothing_to_do():
     assert out.returncode == 0, out.stderr
     assert out.stderr.strip().splitlines()[-1] == '[bootstrap] ready'
     assert 'colcon build' not in out.stderr and 'installing' not in out.stderr, out.stderr
+
+
+# What /opt/ros/jazzy/setup.bash does, pointed at this workspace's pip ROS (.venv): so the
+# bootstrap's system-ROS branch runs here although this machine has no apt ROS.
+FAKE_SYSTEM_ROS_SETUP = '''\
+_v={venv}
+export ROS_DISTRO=jazzy ROS_VERSION=2 ROS_PYTHON_VERSION=3
+export AMENT_PREFIX_PATH=$_v${{AMENT_PREFIX_PATH:+:$AMENT_PREFIX_PATH}}
+export CMAKE_PREFIX_PATH=$_v${{CMAKE_PREFIX_PATH:+:$CMAKE_PREFIX_PATH}}
+export PYTHONPATH={site}${{PYTHONPATH:+:$PYTHONPATH}}
+_ld=$_v/lib
+for _d in {site}/ros_*.libs; do _ld=$_ld:$_d; done
+export LD_LIBRARY_PATH=$_ld${{LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}}
+export PATH={bin}:$PATH
+unset _v _ld _d
+'''
+
+
+def test_bootstrap_takes_the_system_ros_when_there_is_one(tmp_path):
+    system = pathlib.Path('/opt/ros/jazzy')
+    if not (system / 'setup.bash').exists():
+        # the pip ROS as a system install (apt's colcon lives outside the workspace's venv)
+        venv = ROOT / '.venv'
+        system = tmp_path / 'ros'
+        (system / 'bin').mkdir(parents=True)
+        (system / 'bin' / 'colcon').symlink_to(venv / 'bin' / 'colcon')
+        site = sysconfig.get_paths(vars={'base': str(venv), 'platbase': str(venv)})['purelib']
+        (system / 'setup.bash').write_text(FAKE_SYSTEM_ROS_SETUP.format(
+            venv=venv, site=site, bin=system / 'bin'))
+    ws = tmp_path / 'ws'
+    files = subprocess.run(['git', 'ls-files', '-z'], cwd=ROOT, capture_output=True, text=True,
+                           check=True).stdout.split('\0')
+    for name in filter(None, files):
+        if (ROOT / name).is_file():
+            (ws / name).parent.mkdir(parents=True, exist_ok=True)
+            (ws / name).write_bytes((ROOT / name).read_bytes())
+    env = {k: v for k, v in os.environ.items() if k not in (
+        'VIRTUAL_ENV', 'AMENT_PREFIX_PATH', 'CMAKE_PREFIX_PATH', 'PYTHONPATH', 'LD_LIBRARY_PATH',
+        'COLCON_PREFIX_PATH')}
+    env['STEPPER_SYSTEM_ROS'] = str(system)
+    env['PATH'] = os.pathsep.join(p for p in env['PATH'].split(os.pathsep)
+                                  if not p.startswith(str(ROOT)))
+    out = subprocess.run(['bash', str(ws / 'scripts' / 'bootstrap.sh')], capture_output=True,
+                         text=True, timeout=900, env=env)
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert f'using the system ROS in {system}' in out.stderr
+    assert 'PyPI wheels' not in out.stderr and 'colcon build' in out.stderr
+    assert 'include-system-site-packages = true' in (ws / '.venv' / 'pyvenv.cfg').read_text()
+    node = ws / 'install' / 'stepper_drivers' / 'lib' / 'stepper_drivers' / 'xplus_mt_node'
+    # the executables run on the venv's python (pymodbus & co.), not on colcon's own
+    assert node.read_text().splitlines()[0] == f'#!{ws}/.venv/bin/python'
+    # the node starts in that environment: rclpy, the built messages, pymodbus, parameters
+    run = subprocess.run(['bash', '-c', f'source {ws}/scripts/env.sh && exec {node} --ros-args '
+                          f'--params-file {ws}/config/xplus_mt.yaml -p no_such_parameter:=1'],
+                         capture_output=True, text=True, timeout=60, env=env)
+    assert run.returncode == 2, run.stdout + run.stderr
+    assert 'no_such_parameter' in run.stdout + run.stderr
+    again = subprocess.run(['bash', str(ws / 'scripts' / 'bootstrap.sh')], capture_output=True,
+                           text=True, timeout=600, env=env)
+    assert again.returncode == 0 and 'colcon build' not in again.stderr, again.stderr
