@@ -51,6 +51,7 @@ FAST_DISCOVERY = {'FASTRTPS_DEFAULT_PROFILES_FILE': str(CONFIG / 'fastdds_fast_d
 DEMO_TIME_LIMIT_S = 100.0      # the README promises under two minutes, bootstrap included
 POSITION_TOLERANCE = 1e-3      # rad: every target of DEMOS is this close to a whole step
 VELOCITY_RUN_S = 1.0
+RECONNECT_WAIT_S = 15.0     # a node retries a lost drive with back-off (reconnect_period_s x 1..8)
 VELOCITY_COMMAND_PERIOD_S = 0.1     # 10 Hz, well inside command_timeout_s (0.5 s in config/)
 LOG_LINES_SHOWN = 14
 
@@ -212,12 +213,32 @@ class Demo:
         return list(next(iter(params.values()))['ros__parameters']['drives'])
 
     # ------------------------------------------------------------------------ the sequence
+    def connected(self, label: str) -> None:
+        """A drive can drop off its line for a moment (a slow machine starves the simulator):
+        the node refuses commands then, so each step waits for the link first."""
+        msg, _age = self.latest(label)
+        if msg is None or not msg.connected:
+            self.say(f'[{label}] waiting for the link to come back')
+            self.wait_status(label, lambda m: m.connected, RECONNECT_WAIT_S, 'connected')
+
     def service(self, label: str, srv_type, name: str, request=None, timeout_s: float = 30.0):
-        try:
-            resp = self.ros.call(srv_type, f'/{label}/{name}', request, timeout_s)
-        except AssertionError as e:
-            self.check(False, f'{label}: {e}')
-            return None
+        for attempt in (1, 2):
+            self.connected(label)
+            try:
+                resp = self.ros.call(srv_type, f'/{label}/{name}', request, timeout_s)
+            except AssertionError as e:
+                self.check(False, f'{label}: {e}')
+                return None
+            if resp.success or 'DISCONNECTED' not in resp.message or attempt == 2:
+                break
+            self.say(f'[{label}] {name}: {resp.message}; again once the link is back')
+            deadline = time.monotonic() + 2.0
+            while time.monotonic() < deadline:   # the last status seen may predate the loss
+                msg, _age = self.latest(label)
+                if msg is not None and not msg.connected:
+                    break
+                time.sleep(0.02)                  # poll the subscription's latest message
+            self.wait_status(label, lambda m: m.connected, RECONNECT_WAIT_S, 'connected')
         self.say(f'[{label}] {name}: {resp.message}')
         self.check(resp.success, f'{label} {name}: {resp.message}')
         return resp
@@ -231,6 +252,7 @@ class Demo:
         self.phase(label, 'home', t, time.monotonic())
         for target in spec['targets']:
             self.say(f'[{label}] move to {target:+.3f} rad')
+            self.connected(label)
             self.commanded(label, target)
             self.ros.publish(Float64, f'/{label}/position_command', Float64(data=target))
             st = self.wait_status(label, lambda m, t=target: m.fault or (

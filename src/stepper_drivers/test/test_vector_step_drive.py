@@ -6,6 +6,8 @@ third client records the frames, so the tests check what goes over the wire wher
 """
 
 import logging
+import struct
+import threading
 import time
 
 import can
@@ -41,6 +43,9 @@ class Monitor:
 
     def _on(self, msg):
         self.frames.append((msg.arbitration_id, bytes(msg.data)))
+
+    def send(self, cob: int, data: bytes) -> None:
+        self.bus.send(can.Message(arbitration_id=cob, data=data, is_extended_id=False))
 
     def mark(self) -> int:
         return len(self.frames)
@@ -388,3 +393,50 @@ def test_any_python_can_interface_works(tmp_path):
     finally:
         bus.close()
         sim.stop()
+
+
+def test_a_snapshot_waits_for_the_rest_of_a_statusword_burst(bench, monkeypatch):
+    """The monitor plays node 1 (the simulator's link is cut). 'Homing attained' comes first in
+    TxPDO1; Rstsflg's homed bit, the position and the velocity follow in the other TxPDOs of the
+    same burst. read_state() must not mix the new statusword with the old values."""
+    d = bench.connect('axis1')
+    bench.sim.nodes['axis1'].link_cut = True
+    moving, attained, other = 0x0337, 0x1637, 0x0637
+
+    def burst(sw, position, velocity, rstsflg, cobs=(0x181, 0x281, 0x381, 0x481)):
+        frames = {0x181: struct.pack('<Hb', sw, vm.MODE_HOMING),
+                  0x281: struct.pack('<Hi', sw, position),
+                  0x381: struct.pack('<Hi', sw, velocity),
+                  0x481: struct.pack('<HHB', sw, rstsflg, 0)}
+        bench.monitor.send(0x701, b'\x05')              # heartbeat: OPERATIONAL
+        for cob in cobs:
+            bench.monitor.send(cob, frames[cob])
+
+    def newest_statusword(sw):
+        wait(lambda: d._values().get(vm.STATUSWORD) == sw, what=f'statusword 0x{sw:04X}')
+
+    burst(moving, 1000, -100, 0)
+    wait(lambda: d.read_state().position_steps == 1000, what="the monitor's TxPDOs")
+    monkeypatch.setattr(vs, 'BURST_WAIT_S', 5.0)        # no race with a loaded machine
+    burst(attained, 500, 0, vm.RSTSFLG_HOMED, cobs=(0x181,))
+    newest_statusword(attained)
+    got = {}
+    reader = threading.Thread(target=lambda: got.update(state=d.read_state()))
+    reader.start()
+    reader.join(0.3)
+    assert reader.is_alive(), 'read_state() returned in the middle of a burst'
+    burst(attained, 500, 0, vm.RSTSFLG_HOMED, cobs=(0x281, 0x381, 0x481))
+    reader.join(5.0)
+    s = got['state']
+    assert s.homed and s.position_steps == 500 and s.velocity_steps_s == 0.0
+    # a frame of a burst lost: one bounded wait, then no wait per poll until the next change
+    monkeypatch.setattr(vs, 'BURST_WAIT_S', 0.3)
+    burst(other, 500, 0, vm.RSTSFLG_HOMED, cobs=(0x181, 0x281, 0x381))
+    newest_statusword(other)
+    start = time.monotonic()
+    assert d.read_state().status_word == other
+    assert time.monotonic() - start >= 0.3
+    bench.monitor.send(0x701, b'\x05')
+    start = time.monotonic()
+    assert d.read_state().status_word == other
+    assert time.monotonic() - start < 0.3

@@ -42,6 +42,8 @@ SAVE_TIMEOUT_S = 5.0           # Rloadsav 0x81 (EEPROM write) must read 0 again 
 SAVE_POLL_S = 0.02
 WARNING_READ_PERIOD_S = 1.0    # Rwarning is read by SDO at most this often while SW bit 7 is set
 PING_TIMEOUT_S = 0.2
+# A statusword change is sent in all 4 TxPDOs back to back (4 frames: ~4 ms at 125 kbit/s).
+BURST_WAIT_S = 0.02
 RESCUE_BOOT_WAIT_S = 0.5       # boot-up wait after a reset sent to a node that gave no SDO answer
 HOLD_CW = {                    # controlword that keeps each state (sent with a mode change)
     State.SWITCH_ON_DISABLED: cia402.CW_DISABLE_VOLTAGE, State.READY_TO_SWITCH_ON:
@@ -117,6 +119,8 @@ class VectorStepDrive(Drive):
         self._homing = HomingState.IDLE
         self._fault_cache: tuple[int, int, str, tuple[str, ...]] | None = None
         self._warnings: tuple[float, tuple[str, ...]] = (0.0, ())
+        self._pdo_statusword: dict[int, int] = {}    # COB-ID -> statusword of its last TxPDO
+        self._burst_given_up: int | None = None
 
     def _prefix(self) -> str:
         return f'{self.name} (node {self.node_id}): '
@@ -267,7 +271,29 @@ class VectorStepDrive(Drive):
             self.link.configure_pdo('tx', number, entries, 0xFE, event_timer_ms=timer or 0,
                                     inhibit_time_100us=0)
         self.link.node.setup_pdos(upload=False)
+        self._pdo_statusword.clear()
+        for number in range(1, len(vm.DRIVER_TPDOS) + 1):   # before the link's notifying one
+            pdo = self.link.node.tpdo[number]
+            if self._on_tpdo not in pdo.callbacks:
+                pdo.add_callback(self._on_tpdo)
         self.link.watch_tpdos()
+
+    def _on_tpdo(self, pdo_map) -> None:
+        # every DRIVER_TPDOS mapping starts with the statusword
+        self._pdo_statusword[pdo_map.cob_id] = int.from_bytes(bytes(pdo_map.data[:2]), 'little')
+
+    def _wait_for_burst(self) -> None:
+        """A statusword change goes out in every TxPDO, back to back. Until the last of those
+        frames is in, the others hold values from before the change (velocity, Rstsflg's homed
+        bit, the position after homing): wait for them, bounded, so one snapshot is coherent."""
+        def coherent():
+            return len(set(self._pdo_statusword.values())) <= 1
+        newest = self._values().get(vm.STATUSWORD)
+        if coherent() or newest == self._burst_given_up:
+            return
+        if not self.link.wait(coherent, BURST_WAIT_S):
+            # a frame of the burst is lost: do not slow every poll down until the next change
+            self._burst_given_up = newest
 
     def _seed(self) -> None:
         """Current values by SDO, so the cache is right before the first TxPDO arrives."""
@@ -302,6 +328,7 @@ class VectorStepDrive(Drive):
 
     def read_state(self) -> DriveState:
         self._check_alive()
+        self._wait_for_burst()
         values = self._values()
         sw = int(values.get(vm.STATUSWORD, 0))
         mode = int(values.get(vm.MODES_OF_OPERATION_DISPLAY, 0))
