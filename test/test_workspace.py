@@ -158,3 +158,27 @@ def test_bootstrap_takes_the_system_ros_when_there_is_one(tmp_path):
     again = subprocess.run(['bash', str(ws / 'scripts' / 'bootstrap.sh')], capture_output=True,
                            text=True, timeout=600, env=env)
     assert again.returncode == 0 and 'colcon build' not in again.stderr, again.stderr
+
+
+def test_the_fast_dds_profile_lets_services_wait_for_a_new_client():
+    # rmw_fastrtps applies the publisher profile named "service" to every response writer and
+    # waits max_blocking_time for the client's reader (default 100 ms: answers lost under load)
+    ns = {'p': 'http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles'}
+    root = ET.parse(ROOT / 'config' / 'fastdds_fast_discovery.xml').getroot()
+    (service,) = [p for p in root.findall('p:publisher', ns) if p.get('profile_name') == 'service']
+    wait = service.find('p:qos/p:reliability/p:max_blocking_time', ns)
+    seconds = int(wait.findtext('p:sec', '0', ns)) + int(wait.findtext('p:nanosec', '0', ns)) / 1e9
+    assert seconds >= 1.0
+    (participant,) = root.findall('p:participant', ns)
+    assert participant.get('is_default_profile') == 'true'
+    # and Fast DDS itself accepts the file (it prints XMLPARSER errors and goes on without it)
+    import sys
+    code = ('import rclpy; from std_srvs.srv import Trigger; rclpy.init(); '
+            'n = rclpy.create_node("profile_check"); '
+            'n.create_service(Trigger, "profile_check", lambda q, r: r); print("created")')
+    env = dict(os.environ, FASTRTPS_DEFAULT_PROFILES_FILE=str(ROOT / 'config' /
+                                                              'fastdds_fast_discovery.xml'))
+    out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
+                         timeout=60, env=env)
+    assert out.returncode == 0 and 'created' in out.stdout, out.stderr
+    assert 'XMLPARSER' not in out.stdout + out.stderr, out.stdout + out.stderr
