@@ -46,6 +46,15 @@ from .faults import LATE_REPLY, OK, FaultyTcpProxy, LinkFaults
 from .motion import INF
 
 logger = logging.getLogger(__name__)
+SHUTDOWN_STEP_S = 3.0    # each of the server thread's shutdown steps (the caller joins 10 s)
+
+
+async def _bounded(step, what: str) -> None:
+    try:
+        await asyncio.wait_for(step, SHUTDOWN_STEP_S)
+    except asyncio.TimeoutError:
+        logger.warning('%s did not stop within %g s; leaving it to process exit', what,
+                       SHUTDOWN_STEP_S)
 
 # States (T14 names; FAULT REACTION ACTIVE from §13 "Register 1085").
 SOD = 'SWITCH ON DISABLED'
@@ -1079,6 +1088,7 @@ class XplusMtSim:
         return self.address
 
     def stop(self) -> None:
+        logger.info('stopping')
         loop, thread = self._loop, self._thread
         if loop is not None and self._stop_event is not None and not loop.is_closed():
             try:
@@ -1087,6 +1097,8 @@ class XplusMtSim:
                 pass
         if thread is not None:
             thread.join(10.0)
+            if thread.is_alive():
+                logger.warning('server thread still running after 10 s; exiting without it')
         self._thread = None
         self._loop = None
 
@@ -1169,9 +1181,12 @@ class XplusMtSim:
                     await ticker
                 except asyncio.CancelledError:
                     pass
+            # bounded: a stuck connection must not keep the process alive after SIGINT (seen
+            # once on a starved machine: the demo gave up on the simulator after 15 s)
             if proxy is not None:
-                await proxy.stop()
-            await server.shutdown()
+                await _bounded(proxy.stop(), 'the TCP proxy')
+            await _bounded(server.shutdown(), 'the Modbus server')
+            logger.info('stopped')
 
     async def _tick(self) -> None:
         """Time-driven behaviour without traffic (homing, watchdog, HV-stable Switch On)."""
