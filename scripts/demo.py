@@ -167,14 +167,16 @@ class Demo:
         with self.lock:
             self.drives[label]['phases'].append((name, start, end))
 
-    def wait_status(self, label: str, cond, timeout_s: float, what: str) -> DriveStatus | None:
+    def wait_status(self, label: str, cond, timeout_s: float, what: str,
+                    required: bool = True) -> DriveStatus | None:
         deadline = min(time.monotonic() + timeout_s, self.deadline)
         while True:
             msg, _age = self.latest(label)
             if msg is not None and cond(msg):
                 return msg
             if time.monotonic() >= deadline:
-                self.check(False, f'{label}: {what} not seen within {timeout_s:g} s')
+                if required:
+                    self.check(False, f'{label}: {what} not seen within {timeout_s:g} s')
                 return msg
             time.sleep(0.02)   # poll the subscription's latest message
 
@@ -232,12 +234,8 @@ class Demo:
             if resp.success or 'DISCONNECTED' not in resp.message or attempt == 2:
                 break
             self.say(f'[{label}] {name}: {resp.message}; again once the link is back')
-            deadline = time.monotonic() + 2.0
-            while time.monotonic() < deadline:   # the last status seen may predate the loss
-                msg, _age = self.latest(label)
-                if msg is not None and not msg.connected:
-                    break
-                time.sleep(0.02)                  # poll the subscription's latest message
+            # the last status seen may predate the loss: see the loss first, if it shows
+            self.wait_status(label, lambda m: not m.connected, 2.0, 'link loss', required=False)
             self.wait_status(label, lambda m: m.connected, RECONNECT_WAIT_S, 'connected')
         self.say(f'[{label}] {name}: {resp.message}')
         self.check(resp.success, f'{label} {name}: {resp.message}')

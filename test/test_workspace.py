@@ -5,6 +5,7 @@ import os
 import pathlib
 import re
 import subprocess
+import sys
 import sysconfig
 import xml.etree.ElementTree as ET
 
@@ -172,7 +173,6 @@ def test_the_fast_dds_profile_lets_services_wait_for_a_new_client():
     (participant,) = root.findall('p:participant', ns)
     assert participant.get('is_default_profile') == 'true'
     # and Fast DDS itself accepts the file (it prints XMLPARSER errors and goes on without it)
-    import sys
     code = ('import rclpy; from std_srvs.srv import Trigger; rclpy.init(); '
             'n = rclpy.create_node("profile_check"); '
             'n.create_service(Trigger, "profile_check", lambda q, r: r); print("created")')

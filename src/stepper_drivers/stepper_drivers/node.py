@@ -642,29 +642,22 @@ class DriveNode(Node):
     def on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
         """Validate runtime changes (ranges are checked by rclpy); cross-field rules here."""
         bus_changes = {p.name: p.value for p in params if p.name in self.bus_params}
-        if bus_changes:
-            # vendor rules that tie a drive to the poll rate (RD4: the 1 s watchdog must be fed)
-            for h in self.handles.values():
-                try:
-                    self.vendor.make_drive(self.bus, h.name, {**self.bus_params, **bus_changes,
-                                                              **h.cfg.params})
-                except ValueError as e:
-                    return SetParametersResult(successful=False, reason=str(e))
         for h in self.handles.values():
             prefix = f'drives.{h.name}.'
             mine = {p.name[len(prefix):]: p.value for p in params if p.name.startswith(prefix)}
-            if not mine:
-                continue
-            values = {n: h.param(n) for n in RUNTIME_DRIVE_PARAMS}
-            values.update(mine)
-            try:
-                check_drive(prefix, values)
-            except ParameterError as e:
-                return SetParametersResult(successful=False, reason=str(e))
-            if 'homing.method' in mine:
+            if mine:
+                values = {n: h.param(n) for n in RUNTIME_DRIVE_PARAMS}
+                values.update(mine)
                 try:
-                    self.vendor.make_drive(self.bus, h.name, {**self.bus_params, **h.cfg.params,
-                                                              **mine})
+                    check_drive(prefix, values)
+                except ParameterError as e:
+                    return SetParametersResult(successful=False, reason=str(e))
+            # the vendor's own rules: homing methods, and rules that tie a drive to the poll
+            # rate (RD4: the 1 s watchdog must be fed)
+            if bus_changes or 'homing.method' in mine:
+                try:
+                    self.vendor.make_drive(self.bus, h.name, {**self.bus_params, **bus_changes,
+                                                              **h.cfg.params, **mine})
                 except ValueError as e:
                     return SetParametersResult(successful=False, reason=str(e))
         return SetParametersResult(successful=True)

@@ -14,6 +14,7 @@ import can
 import pytest
 from stepper_drivers.drive import DriveError, Homing, HomingState, LinkError, Motion, State
 from stepper_drivers.protocol.socketcand_broker import SocketcandBroker
+from stepper_drivers.tools.processes import wait_for as wait
 from stepper_drivers.vendors import vector_step as vs
 from stepper_drivers.vendors import vector_step_map as vm
 from stepper_sim.vector_step_sim import NodeConfig, VectorStepSim
@@ -96,16 +97,6 @@ class Bench:
         self.monitor.close()
         self.sim.stop()
         self.broker.stop()
-
-
-def wait(cond, timeout_s=5.0, what='condition'):
-    deadline = time.monotonic() + timeout_s
-    while True:
-        value = cond()
-        if value:
-            return value
-        assert time.monotonic() < deadline, f'timed out waiting for {what}'
-        time.sleep(0.005)
 
 
 def settle(drive, timeout_s=5.0):

@@ -309,9 +309,9 @@ class Rd4Unit:
             mask = code & 0xFFFF
             known = sum(a.mask for a in rm.ALARMS)
             if not mask or mask & ~known:
-                known = ', '.join(f'0x{a.mask:04X} {a.name}' for a in rm.ALARMS)
+                names = ', '.join(f'0x{a.mask:04X} {a.name}' for a in rm.ALARMS)
                 raise ValueError(f'drive_fault code 0x{code:04X}: not Alarms register bits '
-                                 f'(known: {known})')
+                                 f'(known: {names})')
             persistent = mask & (rm.ALARM_OVERCURRENT | rm.ALARM_OVERTEMPERATURE
                                  | rm.ALARM_UNDERVOLTAGE)
             self.causes |= persistent
