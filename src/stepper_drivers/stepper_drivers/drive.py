@@ -2,8 +2,19 @@
 
 No rclpy here and nothing below it: a vendor module implements `Bus` (one link: a TCP connection,
 a serial line, a CAN bus) and `Drive` (one drive on that link) and raises the exceptions below.
-Every method is blocking; the node layer serialises access to one bus with a lock, so vendor code
-needs no locking of its own unless it runs background threads (CANopen callbacks).
+
+Threading: one thread owns each bus (`supervisor.BusSupervisor`) and makes every call into its
+Bus and Drive objects, so vendor code needs no locking of its own unless it runs background
+threads (CANopen callbacks).
+
+Step-wise operations: any Drive method may return a generator (`Steps`) instead of a value. Each
+`yield` gives the bus back to its owner between transactions; the number yielded is the least
+time in seconds before the next step (0.0: as soon as the owner has served what is more urgent).
+The generator's `return` value is the method's result. Between two steps the owner may poll other
+drives, run their commands, run a stop of this very drive, or close the generator (GeneratorExit
+at the yield, when a stop, a disable or a link loss cuts the operation short: write nothing to the
+drive from a `finally` then). Keep one step to one or two transactions. `complete()` runs a
+step-wise result to its end in the calling thread (tests, shutdown).
 
 Drive-side units only: steps, steps/s (Hz), steps/s^2 (Hz/s). SI conversion lives in `units.py`.
 """
@@ -13,7 +24,12 @@ from __future__ import annotations
 import abc
 import dataclasses
 import enum
-from typing import Any, Callable, Mapping
+import time
+from typing import Any, Callable, Generator, Mapping, TypeVar
+
+T = TypeVar('T')
+# A step-wise operation: yields delays [s], returns the result (see the module docstring).
+Steps = Generator[float, None, T]
 
 
 class DriveError(Exception):
@@ -26,6 +42,30 @@ class LinkError(DriveError):
 
 class RefusedError(DriveError):
     """The drive cannot do this at all (for example X-MIND K fault reset). Message says why."""
+
+
+class IdentityError(DriveError):
+    """The device at this address is not the configured drive, or lacks what the driver needs
+    (wrong model, a manufacturer object missing). Raised by `connect()`; the node does not drive
+    it and, after a few attempts, stops retrying; the message names the register or object."""
+
+
+def is_steps(result: Any) -> bool:
+    return isinstance(result, Generator)
+
+
+def complete(result: Any, sleep: Callable[[float], None] = time.sleep) -> Any:
+    """Run a step-wise result to its end here, sleeping for every yielded delay; a plain value
+    is returned as it is. For tests and for shutdown, where nothing else shares the bus."""
+    if not is_steps(result):
+        return result
+    try:
+        while True:
+            delay = next(result)
+            if delay:
+                sleep(delay)
+    except StopIteration as stop:
+        return stop.value
 
 
 class State(str, enum.Enum):
@@ -250,3 +290,7 @@ class Vendor:
     make_drive: Callable[[Bus, str, Mapping[str, Any]], Drive]
     # defaults for the common per-drive parameters that differ by vendor (steps_per_rev ...)
     drive_defaults: Mapping[str, Any] = dataclasses.field(default_factory=dict)
+    # Per-drive parameters that choose the drive's link (X-PLUS MT: 'host', 'port'): a drive
+    # that sets one ('' and 0 mean "as the bus-level parameter of the same name") gets a bus of
+    # its own, with its own owner thread; drives with equal values share one bus.
+    drive_bus_params: tuple[str, ...] = ()

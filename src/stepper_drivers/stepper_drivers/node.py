@@ -31,7 +31,7 @@ from stepper_drivers_msgs.msg import DriveStatus
 from stepper_drivers_msgs.srv import ReadRegister, WriteRegister
 
 from .drive import (Bus, Drive, DriveError, DriveState, Homing, HomingState, LinkError, Motion,
-                    RefusedError, State, Vendor)
+                    RefusedError, State, Vendor, complete)
 from .params import RUNTIME_DRIVE_PARAMS, BusConfig, DriveConfig, ParameterError, check_drive
 
 # Position tolerance for "target reached" in a MoveTo action, in steps.
@@ -178,7 +178,7 @@ class DriveNode(Node):
                                  'the node is reconnecting')
         with self.bus_lock:
             try:
-                return fn(*args)
+                return complete(fn(*args))
             except LinkError as e:
                 self._drive_lost(h, str(e))
                 raise
@@ -217,8 +217,8 @@ class DriveNode(Node):
             try:
                 if not self.bus.is_open:
                     self.bus.open()
-                h.identity = h.drive.connect()
-                h.state = h.drive.read_state()
+                h.identity = complete(h.drive.connect())
+                h.state = complete(h.drive.read_state())
             except Exception as e:  # noqa: BLE001 - DriveError, or a vendor/library bug
                 if not isinstance(e, DriveError):
                     self.log.error(f'{h.name}: connect: {e!r}\n' + traceback.format_exc())
@@ -273,7 +273,7 @@ class DriveNode(Node):
                 with self.bus_lock:
                     if not h.connected:
                         continue
-                    h.state = h.drive.read_state()
+                    h.state = complete(h.drive.read_state())
                     h.polls += 1
             except LinkError as e:
                 self._drive_lost(h, str(e))
@@ -697,7 +697,7 @@ class DriveNode(Node):
 
     def _shutdown_step(self, h: DriveHandle, fn: Callable, *args) -> None:
         try:
-            fn(*args)
+            complete(fn(*args))
         except Exception as e:  # noqa: BLE001 - go on with the other steps and drives
             # the ROS context is gone by now: print, do not log through rclpy
             print(f'[{self.get_name()}] {h.name}: shutdown: {fn.__name__}: {e}', flush=True)
@@ -706,7 +706,7 @@ class DriveNode(Node):
         """Let the controlled stop finish before the power stage goes off (bounded)."""
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
-            h.state = h.drive.read_state()
+            h.state = complete(h.drive.read_state())
             if not h.state.moving:
                 return
             time.sleep(STANDSTILL_POLL_S)  # rate limit of the poll; nothing to wait on without ROS
