@@ -1,18 +1,23 @@
-"""DriveNode: the one ROS layer every vendor node shares (ros_interface.md).
+"""DriveNode: the one ROS layer every vendor node shares (ros_interface.md): a thin adapter.
 
-One node per bus, one or more drives per bus. The vendor code below it (drive.py's Bus/Drive) is
-blocking and not re-entrant, so every call into it holds `bus_lock`. The poll thread reads every
-drive at publish_rate_hz and publishes joint_states and status; services may block (home waits for
-the result) but hold the lock only per bus transaction, so joint_states flow during a homing.
+Each bus has one owner thread (`supervisor.BusSupervisor`, no rclpy) that makes every call into
+the vendor code: polls, commands, reconnects, the velocity watchdog and shutdown. This module only
+turns ROS into jobs and snapshots into ROS:
+- Command subscriptions check a command against the limits and the latest snapshot and enqueue
+  it; they never wait. They share one MutuallyExclusiveCallbackGroup, so two messages of one topic
+  are handled in the order they arrived.
+- Services and actions are async callbacks: they enqueue a job and `await` its result (and then
+  the polls they need) without holding an executor thread, so one SingleThreadedExecutor serves
+  the node and a stop is never queued behind a homing.
+- The owner threads publish joint_states and status after each poll cycle of their bus.
 """
 
 from __future__ import annotations
 
+import concurrent.futures
 import math
 import sys
 import threading
-import time
-import traceback
 from typing import Any, Callable
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -22,6 +27,7 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallb
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.task import Future as RosFuture
 from rcl_interfaces.msg import SetParametersResult
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64
@@ -30,17 +36,20 @@ from stepper_drivers_msgs.action import Home, MoveTo
 from stepper_drivers_msgs.msg import DriveStatus
 from stepper_drivers_msgs.srv import ReadRegister, WriteRegister
 
-from .drive import (Bus, Drive, DriveError, DriveState, Homing, HomingState, LinkError, Motion,
-                    RefusedError, State, Vendor, complete)
+from .drive import (Drive, DriveError, DriveState, Homing, HomingState, Motion, RefusedError,
+                    Vendor)
 from .params import RUNTIME_DRIVE_PARAMS, BusConfig, DriveConfig, ParameterError, check_drive
+from .supervisor import (COMMAND, MAINTENANCE, STREAM, URGENT, BusSupervisor, Cancelled, Slot,
+                         Superseded)
 
 # Position tolerance for "target reached" in a MoveTo action, in steps.
 TARGET_TOLERANCE_STEPS = 2
+# A MoveTo result is decided on this many consecutive snapshots that agree (standstill).
+SETTLED_POLLS = 2
 # On shutdown, how long a controlled stop may take before the power stage is disabled anyway.
 SHUTDOWN_STOP_TIMEOUT_S = 5.0
-STANDSTILL_POLL_S = 0.02
-# When polling cannot keep up with publish_rate_hz, this pause gives waiting commands the bus lock.
-OVERRUN_YIELD_S = 0.0005
+# How long a service waits for its job; a job not started by then is dropped.
+JOB_TIMEOUT_S = 15.0
 GIL_SWITCH_INTERVAL_S = 0.0005
 
 
@@ -49,7 +58,8 @@ class CommandRefused(Exception):
 
 
 class DriveHandle:
-    """Runtime state of one drive: its vendor object, conversion, last snapshot, watchdog."""
+    """The ROS side of one drive: its configuration, conversion, refusal counters, and the
+    owner-side slot (snapshot, link state) of its bus supervisor."""
 
     def __init__(self, node: 'DriveNode', cfg: DriveConfig, drive: Drive):
         self.node = node
@@ -57,17 +67,21 @@ class DriveHandle:
         self.name = cfg.name
         self.drive = drive
         self.conv = cfg.conversion
-        self.state = DriveState(state=State.DISCONNECTED)
-        self.connected = False      # this drive answers (see DriveNode.connected for the bus)
-        self.identity: dict[str, str] = {}
-        self.velocity_deadline: float | None = None  # watchdog, time.monotonic()
+        self.sup: BusSupervisor | None = None   # set when the buses are built
         self.commands_refused = 0
         self.last_refusal = ''
-        self.last_error = ''
-        self.polls = 0              # read_state() calls that succeeded; services wait on it
-        self.reconnects = 0         # successful connects (the first one included)
-        self.next_connect = 0.0     # time.monotonic() of the next attempt while disconnected
-        self.backoff_s = node.bus_params['reconnect_period_s']
+
+    @property
+    def slot(self) -> Slot:
+        return self.sup.slots[self.name]
+
+    @property
+    def state(self) -> DriveState:
+        return self.slot.state
+
+    @property
+    def connected(self) -> bool:
+        return self.slot.connected
 
     def param(self, name: str) -> Any:
         return self.node.get_parameter(f'drives.{self.name}.{name}').value
@@ -100,21 +114,15 @@ class DriveNode(Node):
         self.log = self.get_logger()
         self.cfg = config_loader(self)                       # raises ParameterError
         self.bus_params = self.cfg.params
-        self.bus: Bus = vendor.make_bus(dict(self.bus_params))
-        self.bus_lock = threading.RLock()
-        self.changed = threading.Condition()                 # notified after every poll
         self.handles: dict[str, DriveHandle] = {}
-        for dcfg in self.cfg.drives:
-            try:
-                drive = vendor.make_drive(self.bus, dcfg.name, {**self.bus_params, **dcfg.params})
-            except ValueError as e:
-                raise ParameterError(str(e)) from None
-            self.handles[dcfg.name] = DriveHandle(self, dcfg, drive)
+        self.supervisors: list[BusSupervisor] = []
+        self._identities: dict[tuple[str, str], str] = {}    # (key, value) -> drive
+        self._identity_lock = threading.Lock()
+        self._build_buses()
         self.by_joint = {h.cfg.joint_name: h for h in self.handles.values()}
-        self.shutting_down = False
 
-        self.poll_group = MutuallyExclusiveCallbackGroup()
-        self.cmd_group = ReentrantCallbackGroup()
+        self.cmd_group = MutuallyExclusiveCallbackGroup()    # ordered, never waits
+        self.srv_group = ReentrantCallbackGroup()            # async: awaits, holds no thread
         reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
         self.joint_pub = self.create_publisher(JointState, 'joint_states', reliable)
         self.diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
@@ -123,212 +131,152 @@ class DriveNode(Node):
         self.status_pubs = {}
         for h in self.handles.values():
             self._make_drive_interfaces(h)
-        # The poll loop is a thread of its own, not an executor timer: rclpy's executor costs
-        # more per callback than a Modbus TCP transaction, and commands must not queue behind it.
-        self.poll_period_s = 1.0 / self.bus_params['publish_rate_hz']
-        self.poll_stop = threading.Event()
-        self.poll_thread = threading.Thread(target=self._poll_loop, name='poll', daemon=True)
         self.create_timer(1.0 / self.bus_params['diagnostics_rate_hz'], self.publish_diagnostics,
-                          callback_group=self.poll_group)
+                          callback_group=self.cmd_group)
         self.add_on_set_parameters_callback(self.on_set_parameters)
         self.add_post_set_parameters_callback(self.after_set_parameters)
-        self.log.info(f'{vendor.name} node on {self.bus.description}: drives '
-                      + ', '.join(f'{h.name} ({h.cfg.joint_name})' for h in self.handles.values()))
+        for sup in self.supervisors:
+            names = [n for n in self.handles if self.handles[n].sup is sup]
+            self.log.info(f'{vendor.name} node on {sup.bus.description}: drives '
+                          + ', '.join(f'{n} ({self.handles[n].cfg.joint_name})' for n in names))
 
     # ----------------------------------------------------------------------------------- set-up
+    def _drive_bus_params(self, dcfg: DriveConfig) -> dict[str, Any]:
+        """The bus parameters of this drive: the bus-level ones, with the drive's own link
+        parameters (vendor.drive_bus_params) where it sets them."""
+        params = dict(self.bus_params)
+        for key in self.vendor.drive_bus_params:
+            value = dcfg.params.get(key)
+            if value not in (None, '', 0):
+                params[key] = value
+        return params
+
+    def _build_buses(self) -> None:
+        groups: dict[tuple, list[DriveConfig]] = {}
+        for dcfg in self.cfg.drives:
+            params = self._drive_bus_params(dcfg)
+            key = tuple(params.get(k) for k in self.vendor.drive_bus_params)
+            groups.setdefault(key, []).append(dcfg)
+        for dcfgs in groups.values():
+            params = self._drive_bus_params(dcfgs[0])
+            try:
+                bus = self.vendor.make_bus(params)
+            except ValueError as e:
+                raise ParameterError(str(e)) from None
+            drives = {}
+            for dcfg in dcfgs:
+                drive_params = {**params, **{k: v for k, v in dcfg.params.items()
+                                             if k not in self.vendor.drive_bus_params}}
+                try:
+                    drive = self.vendor.make_drive(bus, dcfg.name, drive_params)
+                except ValueError as e:
+                    raise ParameterError(str(e)) from None
+                self.handles[dcfg.name] = DriveHandle(self, dcfg, drive)
+                drives[dcfg.name] = drive
+            sup = BusSupervisor(
+                bus, drives, self.bus_params, on_cycle=self.publish_states,
+                on_connected=self._check_identity, on_event=self._on_event,
+                auto_enable=[d.name for d in dcfgs if d.params.get('auto_enable')],
+                name=bus.description or 'bus')
+            for name in drives:
+                self.handles[name].sup = sup
+            self.supervisors.append(sup)
+
     def _make_drive_interfaces(self, h: DriveHandle) -> None:
         ns = f'~/{h.name}/'
-        g = self.cmd_group
         self.status_pubs[h.name] = self.create_publisher(DriveStatus, ns + 'status', 10)
         self.create_subscription(Float64, ns + 'position_command',
                                  lambda m, h=h: self.command_position(h, m.data), 10,
-                                 callback_group=g)
+                                 callback_group=self.cmd_group)
         self.create_subscription(Float64, ns + 'velocity_command',
                                  lambda m, h=h: self.command_velocity(h, m.data), 10,
-                                 callback_group=g)
+                                 callback_group=self.cmd_group)
         srv = [(SetBool, 'enable', self.srv_enable), (Trigger, 'stop', self.srv_stop),
                (Trigger, 'home', self.srv_home), (Trigger, 'fault_reset', self.srv_fault_reset),
                (Trigger, 'save_params', self.srv_save_params),
                (ReadRegister, 'read_register', self.srv_read_register),
                (WriteRegister, 'write_register', self.srv_write_register)]
         for srv_type, name, fn in srv:
-            self.create_service(srv_type, ns + name,
-                                lambda req, resp, h=h, fn=fn: fn(h, req, resp), callback_group=g)
-        ActionServer(self, MoveTo, ns + 'move_to',
-                     execute_callback=lambda goal, h=h: self.act_move_to(h, goal),
-                     goal_callback=lambda _req: GoalResponse.ACCEPT,
-                     cancel_callback=lambda _goal: CancelResponse.ACCEPT, callback_group=g)
-        ActionServer(self, Home, ns + 'homing',
-                     execute_callback=lambda goal, h=h: self.act_home(h, goal),
-                     goal_callback=lambda _req: GoalResponse.ACCEPT,
-                     cancel_callback=lambda _goal: CancelResponse.ACCEPT, callback_group=g)
+            async def callback(req, resp, h=h, fn=fn):
+                return await fn(h, req, resp)
+            self.create_service(srv_type, ns + name, callback, callback_group=self.srv_group)
 
-    # ----------------------------------------------------------------------------- bus access
-    # Link state is kept per drive: a CANopen node whose heartbeat stops, or an RS-485 unit that
-    # no longer answers, is DISCONNECTED while the others on the bus go on. When no drive is left
-    # the bus itself is closed and reopened on the next attempt.
+        async def move_to(goal, h=h):
+            return await self.act_move_to(h, goal)
+
+        async def homing(goal, h=h):
+            return await self.act_home(h, goal)
+        ActionServer(self, MoveTo, ns + 'move_to', execute_callback=move_to,
+                     goal_callback=lambda _req: GoalResponse.ACCEPT,
+                     cancel_callback=lambda _goal: CancelResponse.ACCEPT,
+                     callback_group=self.srv_group)
+        ActionServer(self, Home, ns + 'homing', execute_callback=homing,
+                     goal_callback=lambda _req: GoalResponse.ACCEPT,
+                     cancel_callback=lambda _goal: CancelResponse.ACCEPT,
+                     callback_group=self.srv_group)
+
+    # ------------------------------------------------------------------- owner-side callbacks
     @property
     def connected(self) -> bool:
         return any(h.connected for h in self.handles.values())
 
-    def call(self, h: DriveHandle, fn: Callable, *args):
-        """Run one vendor call under the bus lock; a LinkError disconnects the drive."""
-        if not h.connected:
-            raise CommandRefused(f'drive {h.name} is DISCONNECTED ({self.bus.description}); '
-                                 'the node is reconnecting')
-        with self.bus_lock:
-            try:
-                return complete(fn(*args))
-            except LinkError as e:
-                self._drive_lost(h, str(e))
-                raise
-            except DriveError:
-                raise
-            except Exception as e:  # noqa: BLE001 - a vendor bug must not kill the node
-                self.log.error(f'{h.name}: internal error in {fn.__name__}: {e!r}\n'
-                               + traceback.format_exc())
-                raise DriveError(f'internal error in {fn.__name__}: {e!r}') from e
-
-    def _drive_lost(self, h: DriveHandle, why: str) -> None:
-        with self.bus_lock:
-            if not h.connected:
-                return
-            # velocity_deadline stays: a velocity run the drive may still be doing is stopped by
-            # the watchdog at the first poll after reconnecting.
-            h.connected = False
-            h.state = DriveState(state=State.DISCONNECTED, position_steps=h.state.position_steps,
-                                 homed=h.state.homed)
-            h.backoff_s = self.bus_params['reconnect_period_s']
-            h.next_connect = time.monotonic() + h.backoff_s
-            self.log.error(f'{h.name}: link lost ({why}); reconnecting every '
-                           f"{self.bus_params['reconnect_period_s']:g} s and more (back-off)")
-            if not self.connected:
-                self._close_bus()
-
-    def _close_bus(self) -> None:
-        try:
-            self.bus.close()
-        except Exception as e:  # noqa: BLE001 - closing a dead link may fail any way
-            self.log.debug(f'close after link loss: {e}')
-
-    def try_connect(self, h: DriveHandle) -> bool:
-        """One connection attempt for one drive (opening the bus first if it is closed)."""
-        with self.bus_lock:
-            try:
-                if not self.bus.is_open:
-                    self.bus.open()
-                h.identity = complete(h.drive.connect())
-                h.state = complete(h.drive.read_state())
-            except Exception as e:  # noqa: BLE001 - DriveError, or a vendor/library bug
-                if not isinstance(e, DriveError):
-                    self.log.error(f'{h.name}: connect: {e!r}\n' + traceback.format_exc())
-                if not self.connected:
-                    self._close_bus()
-                if h.backoff_s == self.bus_params['reconnect_period_s'] or h.reconnects == 0:
-                    self.log.warning(f'{h.name}: cannot connect on {self.bus.description}: {e}; '
-                                     'retrying')
-                h.next_connect = time.monotonic() + h.backoff_s
-                h.backoff_s = min(h.backoff_s * 2, 8 * self.bus_params['reconnect_period_s'])
-                return False
-            h.connected = True
-            h.reconnects += 1
-            h.backoff_s = self.bus_params['reconnect_period_s']
-        # After a (re)connect, report what the drive does; never resume a motion by itself.
-        identity = ', '.join(f'{k}={v}' for k, v in h.identity.items())
-        self.log.info(f'{h.name}: connected ({identity}); state {h.state.state.value}, '
-                      f'position {h.position:.6g}')
-        return True
-
-    # ------------------------------------------------------------------------------ poll loop
-    def start(self) -> None:
-        self.poll_thread.start()
-
-    def _poll_loop(self) -> None:
-        next_t = time.monotonic()
-        while not self.poll_stop.is_set():
-            try:
-                self.poll()
-            except Exception as e:  # noqa: BLE001 - the loop must survive anything
-                if not self.context.ok():   # SIGINT/SIGTERM shut the context down: we are done
-                    return
-                self.log.error(f'poll: {e!r}\n' + traceback.format_exc())
-            next_t += self.poll_period_s
-            delay = next_t - time.monotonic()
-            if delay < OVERRUN_YIELD_S:  # overrun: no catch-up burst, and let commands in
-                next_t = time.monotonic()
-                delay = OVERRUN_YIELD_S
-            self.poll_stop.wait(delay)
-
-    def poll(self) -> None:
-        if self.shutting_down:
-            return
-        for h in self.handles.values():
-            now = time.monotonic()
-            if not h.connected:
-                if now >= h.next_connect and self.try_connect(h):
-                    if h.param('auto_enable') and h.reconnects == 1:
-                        self._auto_enable(h)
-                continue
-            try:
-                with self.bus_lock:
-                    if not h.connected:
-                        continue
-                    h.state = complete(h.drive.read_state())
-                    h.polls += 1
-            except LinkError as e:
-                self._drive_lost(h, str(e))
-                continue
-            except DriveError as e:
-                self._note_error(h, f'read state: {e}')
-                continue
-            except Exception as e:  # noqa: BLE001 - unknown trouble: treat as a link loss
-                self.log.error(f'{h.name}: read_state: {e!r}\n' + traceback.format_exc())
-                self._drive_lost(h, f'unexpected error {e!r}')
-                continue
-            if h.velocity_deadline is not None and now > h.velocity_deadline:
-                h.velocity_deadline = None
-                self.log.warning(
-                    f'{h.name}: velocity watchdog: no velocity_command for '
-                    f"{self.bus_params['command_timeout_s']:g} s (command_timeout_s), stopping")
-                self._safe(h, h.drive.stop)
-        with self.changed:
-            self.changed.notify_all()
+    def _on_event(self, level: str, drive: str, text: str) -> None:
         if self.context.ok():
-            self.publish_states()
+            # one call site per severity: rclpy refuses two severities from one line
+            if level == 'error':
+                self.log.error(f'{drive}: {text}')
+            elif level == 'warning':
+                self.log.warning(f'{drive}: {text}')
+            else:
+                self.log.info(f'{drive}: {text}')
+        else:   # shutdown runs after the ROS context is gone: print, not through rclpy
+            print(f'[{self.get_name()}] {drive}: {text}', flush=True)
 
-    def _auto_enable(self, h: DriveHandle) -> None:
-        try:
-            self.call(h, h.drive.enable)
-            self.log.info(f'{h.name}: enabled at start-up (auto_enable)')
-        except (DriveError, CommandRefused) as e:
-            self.log.error(f'{h.name}: auto_enable failed: {e}')
+    def _check_identity(self, sup: BusSupervisor, slot: Slot) -> str:
+        """Two configured drives that answer with one identity are one device reached twice
+        (two unit ids or addresses, two host names): commanding one would move the other."""
+        ident = slot.identity
+        serial = ident.get('serial_number', '')
+        if serial in ('', '0'):
+            return ''
+        key = ('serial_number', f"{ident.get('product_code', '')}/{serial}")
+        with self._identity_lock:
+            other = self._identities.setdefault(key, slot.name)
+        if other == slot.name:
+            return ''
+        why = (f'{slot.name} and {other} answer with one identity (serial_number {serial}): '
+               f'one device is reached twice; check their address parameters '
+               f'({", ".join(self._address_params())})')
+        self.handles[other].sup.refuse_drive(other, why)
+        return why
 
-    def _safe(self, h: DriveHandle, fn: Callable, *args) -> bool:
-        try:
-            self.call(h, fn, *args)
-            return True
-        except (DriveError, CommandRefused) as e:
-            self._note_error(h, str(e))
-            return False
+    def _address_params(self) -> list[str]:
+        names = [s.name for s in self.vendor.params if s.scope == 'drive'
+                 and s.name in ('unit_id', 'node_id', 'address', 'host', 'port', 'slave_id')]
+        return [f'drives.<name>.{n}' for n in names] or ['the drive addresses']
 
-    def _note_error(self, h: DriveHandle, msg: str) -> None:
-        if msg != h.last_error:
-            self.log.error(f'{h.name}: {msg}')
-        h.last_error = msg
+    # ------------------------------------------------------------------------------ polling
+    def start(self) -> None:
+        for sup in self.supervisors:
+            sup.start()
 
-    def publish_states(self) -> None:
+    def publish_states(self, sup: BusSupervisor) -> None:
+        """Owner thread, after each poll cycle of its bus."""
+        if not self.context.ok():
+            return
+        handles = [self.handles[n] for n in sup.slots]
         stamp = self.get_clock().now().to_msg()
         js = JointState()
         js.header.stamp = stamp
-        for h in self.handles.values():
+        for h in handles:
             js.name.append(h.cfg.joint_name)
             js.position.append(h.position)
             js.velocity.append(h.velocity if h.state.velocity_valid else math.nan)
-        if all(h.state.effort is not None for h in self.handles.values()):
-            js.effort = [float(h.state.effort) for h in self.handles.values()]
+        if all(h.state.effort is not None for h in handles):
+            js.effort = [float(h.state.effort) for h in handles]
         self.joint_pub.publish(js)
-        counters = self.bus.counters()
-        for h in self.handles.values():
+        counters = sup.bus.counters()
+        for h in handles:
             self.status_pubs[h.name].publish(self._status_msg(h, stamp, counters))
 
     def _status_msg(self, h: DriveHandle, stamp, counters: dict[str, int]) -> DriveStatus:
@@ -352,38 +300,47 @@ class DriveNode(Node):
         m.position, m.velocity = h.position, h.velocity
         m.link_transactions = counters.get('transactions', 0) & 0xFFFFFFFF
         m.link_errors = counters.get('errors', 0) & 0xFFFFFFFF
-        m.link_reconnects = max(h.reconnects - 1, 0)
+        m.link_reconnects = max(h.slot.reconnects - 1, 0)
         m.commands_refused, m.last_refusal = h.commands_refused, h.last_refusal
+        m.not_driven = h.slot.not_driven
+        m.watchdog_armed = h.sup.watchdog_armed(h.name)
         return m
 
     def publish_diagnostics(self) -> None:
         arr = DiagnosticArray()
         arr.header.stamp = self.get_clock().now().to_msg()
-        link = DiagnosticStatus(name=f'{self.get_name()}: link', hardware_id=self.bus.description)
-        lost = [h.name for h in self.handles.values() if not h.connected]
-        if not lost:
-            link.level, link.message = DiagnosticStatus.OK, 'connected'
-        elif len(lost) < len(self.handles):
-            link.level = DiagnosticStatus.WARN
-            link.message = f'{", ".join(lost)} DISCONNECTED, reconnecting'
-        else:
-            link.level, link.message = DiagnosticStatus.ERROR, 'DISCONNECTED, reconnecting'
-        link.values = [KeyValue(key=k, value=str(v)) for k, v in self.bus.counters().items()]
-        link.values.append(KeyValue(key='reconnects', value=str(
-            sum(max(h.reconnects - 1, 0) for h in self.handles.values()))))
-        arr.status.append(link)
+        for sup in self.supervisors:
+            names = list(sup.slots)
+            link = DiagnosticStatus(name=f'{self.get_name()}: link',
+                                    hardware_id=sup.bus.description)
+            if len(self.supervisors) > 1:
+                link.name += f' {sup.bus.description}'
+            lost = [n for n in names if not self.handles[n].connected]
+            if not lost:
+                link.level, link.message = DiagnosticStatus.OK, 'connected'
+            elif len(lost) < len(names):
+                link.level = DiagnosticStatus.WARN
+                link.message = f'{", ".join(lost)} DISCONNECTED, reconnecting'
+            else:
+                link.level, link.message = DiagnosticStatus.ERROR, 'DISCONNECTED, reconnecting'
+            link.values = [KeyValue(key=k, value=str(v)) for k, v in sup.bus.counters().items()]
+            link.values.append(KeyValue(key='reconnects', value=str(
+                sum(max(sup.slots[n].reconnects - 1, 0) for n in names))))
+            arr.status.append(link)
         for h in self.handles.values():
             s = h.state
             d = DiagnosticStatus(name=f'{self.get_name()}: {h.name}',
                                  hardware_id=f'{self.vendor.name} {h.drive.address}')
-            if not h.connected:
+            if h.slot.not_driven:
+                d.level, d.message = DiagnosticStatus.ERROR, f'not driven: {h.slot.not_driven}'
+            elif not h.connected:
                 d.level, d.message = DiagnosticStatus.ERROR, 'DISCONNECTED'
             elif s.fault:
                 d.level = DiagnosticStatus.ERROR
                 d.message = f'FAULT 0x{s.fault_code:04X}: {s.fault_text}'
-            elif s.alarms or h.last_error:
+            elif s.alarms or h.slot.last_error:
                 d.level = DiagnosticStatus.WARN
-                d.message = '; '.join(s.alarms) or h.last_error
+                d.message = '; '.join(s.alarms) or h.slot.last_error
             else:
                 d.level, d.message = DiagnosticStatus.OK, s.state.value
             kv = {'state': s.state.value, 'joint': h.cfg.joint_name, 'enabled': s.enabled,
@@ -391,7 +348,9 @@ class DriveNode(Node):
                   'position': f'{h.position:.6g}', 'position_steps': s.position_steps,
                   'status_word': f'0x{s.status_word:04X}', 'fault_code': f'0x{s.fault_code:04X}',
                   'fault_text': s.fault_text, 'commands_refused': h.commands_refused,
-                  'last_refusal': h.last_refusal, **h.identity}
+                  'last_refusal': h.last_refusal,
+                  'velocity_watchdog': 'armed' if h.sup.watchdog_armed(h.name) else 'idle',
+                  **h.slot.identity}
             d.values = [KeyValue(key=k, value=str(v)) for k, v in kv.items()]
             arr.status.append(d)
         self.diag_pub.publish(arr)
@@ -404,9 +363,14 @@ class DriveNode(Node):
         h.commands_refused += 1
         raise CommandRefused(why)
 
-    def _check_ready(self, h: DriveHandle, what: str) -> None:
+    def _check_link(self, h: DriveHandle, what: str) -> None:
+        if h.slot.not_driven:
+            self.refuse(h, f'{what}: drive is not driven: {h.slot.not_driven}')
         if not h.connected:
             self.refuse(h, f'{what}: drive is DISCONNECTED')
+
+    def _check_ready(self, h: DriveHandle, what: str) -> None:
+        self._check_link(h, what)
         if h.state.fault:
             self.refuse(h, f'{what}: drive is in FAULT 0x{h.state.fault_code:04X} '
                            f'({h.state.fault_text}); call fault_reset first')
@@ -418,59 +382,106 @@ class DriveNode(Node):
         if not math.isfinite(value):
             self.refuse(h, f'{what} {value} is not a finite number')
 
-    def command_position(self, h: DriveHandle, position: float) -> None:
-        try:
-            self.start_move(h, position)
-        except (CommandRefused, DriveError):
-            pass
-
-    def start_move(self, h: DriveHandle, position: float) -> None:
-        what = f'position_command {position}'
-        self._check_finite(h, 'position_command', position)
+    def _check_position(self, h: DriveHandle, what: str, position: float) -> int:
+        self._check_finite(h, what, position)
         lo, hi = h.param('min_position'), h.param('max_position')
         if not lo <= position <= hi:
-            self.refuse(h, f'{what} is outside min_position..max_position ({lo:g}..{hi:g})')
-        self._check_ready(h, what)
-        h.velocity_deadline = None
+            self.refuse(h, f'{what} {position} is outside min_position..max_position '
+                           f'({lo:g}..{hi:g})')
+        steps = h.conv.to_steps(position)
+        if not math.isfinite(steps) or abs(steps) >= 2 ** 63:
+            self.refuse(h, f'{what} {position} is {steps:g} steps: beyond any drive position')
+        self._check_ready(h, f'{what} {position}')
+        return h.conv.to_steps_int(position)
+
+    def _job_failed(self, h: DriveHandle, what: str, fut: concurrent.futures.Future) -> None:
+        """Owner thread: a queued command failed; superseded and dropped ones are normal."""
+        exc = fut.exception() if not fut.cancelled() else None
+        if exc is not None and not isinstance(exc, (Superseded, Cancelled)):
+            msg = f'{what}: {exc}'
+            if msg != h.slot.last_error:
+                self.log.error(f'{h.name}: {msg}')
+            h.slot.last_error = msg
+
+    def command_position(self, h: DriveHandle, position: float) -> None:
+        what = 'position_command'
         try:
-            self.call(h, h.drive.move_to, h.conv.to_steps_int(position), h.motion())
-        except DriveError as e:
-            self._note_error(h, f'{what}: {e}')
-            raise
+            steps = self._check_position(h, what, position)
+        except CommandRefused:
+            return
+        motion = h.motion()
+        fut = h.sup.submit(h.name, STREAM, lambda: h.drive.move_to(steps, motion),
+                           f'{what} {position}', topic='position', disarms=True)
+        fut.add_done_callback(lambda f: self._job_failed(h, f'{what} {position}', f))
 
     def command_velocity(self, h: DriveHandle, velocity: float) -> None:
+        what = f'velocity_command {velocity}'
         try:
-            what = f'velocity_command {velocity}'
             self._check_finite(h, 'velocity_command', velocity)
             vmax = h.param('max_velocity')
             if abs(velocity) > vmax:
                 self.refuse(h, f'{what} exceeds max_velocity ({vmax:g})')
             self._check_ready(h, what)
-            self.call(h, h.drive.set_velocity, h.conv.to_steps(velocity), h.motion())
-            h.velocity_deadline = (time.monotonic() + self.bus_params['command_timeout_s']
-                                   if velocity != 0.0 else None)
         except CommandRefused:
-            pass
-        except DriveError as e:
-            self._note_error(h, f'velocity_command {velocity}: {e}')
+            return
+        if velocity != 0.0:
+            # armed before anything is written: a write whose reply is lost still ran
+            h.sup.arm_watchdog(h.name)
+        steps_s, motion = h.conv.to_steps(velocity), h.motion()
+        fut = h.sup.submit(h.name, STREAM, lambda: h.drive.set_velocity(steps_s, motion), what,
+                           topic='velocity', disarms=velocity == 0.0)
+        fut.add_done_callback(lambda f: self._job_failed(h, what, f))
 
     def on_joint_command(self, msg: JointState) -> None:
+        n = len(msg.name)
+        for field in ('position', 'velocity'):
+            values = getattr(msg, field)
+            if values and len(values) != n:
+                self.log.warning(
+                    f'joint_command refused: {len(values)} {field} values for {n} names '
+                    f'{list(msg.name)} (each non-empty array needs one value per name)',
+                    throttle_duration_sec=5.0)
+                return
         for i, joint in enumerate(msg.name):
             h = self.by_joint.get(joint)
             if h is None:
                 self.log.warning(f'joint_command: unknown joint {joint!r} (this node has '
                                  f'{sorted(self.by_joint)})', throttle_duration_sec=5.0)
                 continue
-            if i < len(msg.position) and not math.isnan(msg.position[i]):
+            if msg.position and not math.isnan(msg.position[i]):
                 self.command_position(h, msg.position[i])
-            elif i < len(msg.velocity) and not math.isnan(msg.velocity[i]):
+            elif msg.velocity and not math.isnan(msg.velocity[i]):
                 self.command_velocity(h, msg.velocity[i])
 
-    # ------------------------------------------------------------------------------- services
-    def _run(self, h: DriveHandle, resp, fn: Callable, ok_message: Callable[[Any], str]):
-        """Call fn, fill a success/message response; errors become success=false + reason."""
+    # --------------------------------------------------------------- waiting without a thread
+    async def _await(self, fut: concurrent.futures.Future, timeout_s: float | None = None):
+        """Await an owner-thread future in an async callback; a job still queued when
+        timeout_s passes is dropped (one that started is awaited: it ends by itself)."""
+        ros_fut = RosFuture(executor=self.executor)
+        ros_fut.add_done_callback(lambda _f: None)    # set_result then wakes the executor
+        fut.add_done_callback(lambda _f: ros_fut.set_result(None))
+        if timeout_s is not None:
+            self.supervisors[0].after(timeout_s, fut.cancel)
+        await ros_fut
+        if fut.cancelled():
+            raise DriveError(f'not started within {timeout_s:g} s: the drive is busy with '
+                             'earlier commands')
+        return fut.result()
+
+    async def _next_poll(self, h: DriveHandle, timeout_s: float = 2.0) -> bool:
+        """Await the next snapshot of h (False: none within timeout_s, or the link is lost)."""
+        fut: concurrent.futures.Future = concurrent.futures.Future()
+        h.sup.wait_poll(h.name, timeout_s, fut.set_result)
+        return await self._await(fut)
+
+    async def _run_job(self, h: DriveHandle, kind: str, fn: Callable, label: str,
+                       **kw) -> Any:
+        return await self._await(h.sup.submit(h.name, kind, fn, label, **kw), JOB_TIMEOUT_S)
+
+    async def _respond(self, h: DriveHandle, resp, work, ok_message: Callable[[Any], str]):
+        """Await work(); fill a success/message response; errors become success=false."""
         try:
-            result = fn()
+            result = await work()
             resp.success, resp.message = True, ok_message(result)
         except (CommandRefused, RefusedError, DriveError) as e:
             resp.success, resp.message = False, f'{h.name}: {e}'
@@ -478,47 +489,38 @@ class DriveNode(Node):
                 self.log.warning(resp.message)
         return resp
 
-    def wait_polls(self, h: DriveHandle, n: int, timeout_s: float) -> bool:
-        """Wait until n fresh snapshots of h were read (so a state after a command is current)."""
-        target = h.polls + n
-        deadline = time.monotonic() + timeout_s
-        with self.changed:
-            while h.polls < target:
-                left = deadline - time.monotonic()
-                if left <= 0 or not h.connected:
-                    return False
-                self.changed.wait(left)
-        return True
-
-    def srv_enable(self, h: DriveHandle, req, resp):
-        def do():
-            if not h.connected:
-                self.refuse(h, 'enable: drive is DISCONNECTED')
-            h.velocity_deadline = None
-            self.call(h, h.drive.enable if req.data else h.drive.disable)
-            self.wait_polls(h, 1, 2.0)
+    # ------------------------------------------------------------------------------- services
+    async def srv_enable(self, h: DriveHandle, req, resp):
+        async def work():
+            self._check_link(h, 'enable' if req.data else 'disable')
+            if req.data:
+                await self._run_job(h, COMMAND, h.drive.enable, 'enable', motion=False)
+            else:
+                await self._run_job(h, URGENT, h.drive.disable, 'disable', disarms=True,
+                                    motion=False)
+            await self._next_poll(h)
             return h.state.state.value
-        return self._run(h, resp, do, lambda st: f'{h.name}: {st}')
+        return await self._respond(h, resp, work, lambda st: f'{h.name}: {st}')
 
-    def srv_stop(self, h: DriveHandle, req, resp):
-        def do():
-            h.velocity_deadline = None
-            self.call(h, h.drive.stop)
-        return self._run(h, resp, do,
-                         lambda _: f'{h.name}: stopping with the profile deceleration')
+    async def srv_stop(self, h: DriveHandle, req, resp):
+        async def work():
+            self._check_link(h, 'stop')
+            await self._run_job(h, URGENT, h.drive.stop, 'stop', disarms=True)
+        return await self._respond(h, resp, work,
+                                   lambda _: f'{h.name}: stopping with the profile deceleration')
 
-    def run_homing(self, h: DriveHandle, feedback: Callable[[], None] | None = None,
-                   cancelled: Callable[[], bool] = lambda: False) -> str:
+    async def run_homing(self, h: DriveHandle, feedback: Callable[[], None] | None = None,
+                         cancelled: Callable[[], bool] = lambda: False) -> str:
+        self._check_link(h, 'home')
         if h.state.fault:
             self.refuse(h, f'home: drive is in FAULT 0x{h.state.fault_code:04X} '
                            f'({h.state.fault_text}); call fault_reset first')
-        if not h.connected:
-            self.refuse(h, 'home: drive is DISCONNECTED')
-        h.velocity_deadline = None
-        note = self.call(h, h.drive.start_homing, h.homing())
+        homing = h.homing()
+        note = await self._run_job(h, COMMAND, lambda: h.drive.start_homing(homing), 'home',
+                                   disarms=True)
         timeout_s = h.param('homing.timeout_s')
-        deadline = time.monotonic() + timeout_s
-        self.wait_polls(h, 1, 2.0)
+        deadline = self.get_clock().now().nanoseconds * 1e-9 + timeout_s
+        await self._next_poll(h)
         while True:
             st = h.state.homing
             if st == HomingState.ATTAINED:
@@ -533,83 +535,112 @@ class DriveNode(Node):
             if not h.connected:
                 raise DriveError('homing interrupted: link lost')
             if cancelled():
-                self._safe(h, h.drive.stop)
+                await self._stop_quietly(h, 'homing cancelled')
                 raise DriveError('homing cancelled; drive stopped')
-            if time.monotonic() > deadline:
-                self._safe(h, h.drive.stop)
+            if self.get_clock().now().nanoseconds * 1e-9 > deadline:
+                await self._stop_quietly(h, 'homing timeout')
                 raise DriveError(f'homing timed out after {timeout_s:g} s (homing.timeout_s); '
                                  'drive stopped')
             if feedback:
                 feedback()
-            self.wait_polls(h, 1, 1.0)
+            await self._next_poll(h, 1.0)
 
-    def srv_home(self, h: DriveHandle, req, resp):
-        return self._run(h, resp, lambda: self.run_homing(h), lambda msg: msg)
+    async def _stop_quietly(self, h: DriveHandle, why: str) -> None:
+        try:
+            await self._run_job(h, URGENT, h.drive.stop, f'stop ({why})', disarms=True)
+        except DriveError as e:
+            self.log.error(f'{h.name}: stop ({why}) failed: {e}')
 
-    def srv_fault_reset(self, h: DriveHandle, req, resp):
-        def do():
-            remaining = self.call(h, h.drive.fault_reset)
-            self.wait_polls(h, 1, 2.0)
+    async def srv_home(self, h: DriveHandle, req, resp):
+        return await self._respond(h, resp, lambda: self.run_homing(h), lambda msg: msg)
+
+    async def srv_fault_reset(self, h: DriveHandle, req, resp):
+        async def work():
+            self._check_link(h, 'fault_reset')
+            remaining = await self._run_job(h, COMMAND, h.drive.fault_reset, 'fault_reset',
+                                            motion=False)
+            await self._next_poll(h)
             if remaining:
                 raise DriveError(f'fault remains: {remaining}')
             return h.state.state.value
-        return self._run(h, resp, do, lambda st: f'{h.name}: fault cleared, state {st}')
+        return await self._respond(h, resp, work,
+                                   lambda st: f'{h.name}: fault cleared, state {st}')
 
-    def srv_save_params(self, h: DriveHandle, req, resp):
-        return self._run(h, resp, lambda: self.call(h, h.drive.save_params),
-                         lambda note: f'{h.name}: parameters saved'
-                         + (f'; {note}' if note else ''))
+    async def srv_save_params(self, h: DriveHandle, req, resp):
+        async def work():
+            self._check_link(h, 'save_params')
+            return await self._run_job(h, MAINTENANCE, h.drive.save_params, 'save_params',
+                                       motion=False)
+        return await self._respond(h, resp, work, lambda note: f'{h.name}: parameters saved'
+                                   + (f'; {note}' if note else ''))
 
-    def srv_read_register(self, h: DriveHandle, req, resp):
+    async def srv_read_register(self, h: DriveHandle, req, resp):
         resp.value, resp.text = 0, ''
 
-        def do():
-            value = self.call(h, h.drive.read_register, req.address, req.data_type)
+        async def work():
+            self._check_link(h, 'read_register')
+            value = await self._run_job(
+                h, MAINTENANCE, lambda: h.drive.read_register(req.address, req.data_type),
+                f'read_register {req.address}', motion=False)
             if isinstance(value, str):
                 resp.text = value
             else:
                 resp.value = int(value)
             return value
-        return self._run(h, resp, do, lambda v: f'{req.address} ({req.data_type}) = {v}')
+        return await self._respond(h, resp, work,
+                                   lambda v: f'{req.address} ({req.data_type}) = {v}')
 
-    def srv_write_register(self, h: DriveHandle, req, resp):
-        def do():
+    async def srv_write_register(self, h: DriveHandle, req, resp):
+        value = req.text if req.data_type.lower() == 'string' else req.value
+
+        async def work():
             if not h.param('allow_raw_write'):
                 self.refuse(h, f'write_register {req.address}: raw writes are disabled '
                                f'(set drives.{h.name}.allow_raw_write: true)')
-            value = req.text if req.data_type.lower() == 'string' else req.value
-            self.call(h, h.drive.write_register, req.address, req.data_type, value)
-        shown = req.text if req.data_type.lower() == 'string' else req.value
-        return self._run(h, resp, do, lambda _: f'{req.address} ({req.data_type}) := {shown}')
+            self._check_link(h, 'write_register')
+            # a raw write may be a controlword: a stop drops it like any motion command
+            await self._run_job(
+                h, MAINTENANCE, lambda: h.drive.write_register(req.address, req.data_type, value),
+                f'write_register {req.address}')
+        return await self._respond(h, resp, work,
+                                   lambda _: f'{req.address} ({req.data_type}) := {value}')
 
     # -------------------------------------------------------------------------------- actions
-    def act_move_to(self, h: DriveHandle, goal_handle):
+    async def act_move_to(self, h: DriveHandle, goal_handle):
         result = MoveTo.Result()
         target = goal_handle.request.position
         try:
-            self.start_move(h, target)
-            self.wait_polls(h, 1, 2.0)
-            target_steps = h.conv.to_steps_int(target)
+            steps = self._check_position(h, 'move_to', target)
+            motion = h.motion()
+            await self._run_job(h, COMMAND, lambda: h.drive.move_to(steps, motion),
+                                f'move_to {target}', disarms=True)
             fb = MoveTo.Feedback()
+            settled, last = 0, None
+            await self._next_poll(h)
             while True:
+                if not await self._next_poll(h, 1.0) and not h.connected:
+                    raise DriveError('move aborted: link lost')
                 s = h.state
-                if s.fault or not h.connected:
+                if s.fault:
                     raise DriveError(f'move aborted: state {s.state.value} {s.fault_text}'.strip())
                 if goal_handle.is_cancel_requested:
-                    self._safe(h, h.drive.stop)
+                    await self._stop_quietly(h, 'move_to cancelled')
                     goal_handle.canceled()
                     result.message, result.final_position = 'cancelled; drive stopped', h.position
                     return result
-                at_target = abs(s.position_steps - target_steps) <= TARGET_TOLERANCE_STEPS
-                if not s.moving and at_target:
-                    break
-                if not s.moving and s.target_reached and h.polls > 0 and \
-                        abs(s.position_steps - target_steps) > TARGET_TOLERANCE_STEPS:
+                # decided on SETTLED_POLLS snapshots in a row that agree: standstill at one
+                # position (one snapshot may mix an old position with a new status)
+                still = not s.moving and (s.target_reached or abs(
+                    s.position_steps - steps) <= TARGET_TOLERANCE_STEPS)
+                settled = settled + 1 if still and last == s.position_steps else int(still)
+                last = s.position_steps
+                if settled >= SETTLED_POLLS:
+                    if abs(s.position_steps - steps) <= TARGET_TOLERANCE_STEPS:
+                        break
                     raise DriveError(f'drive stopped at {h.position:.6g}, not at {target:.6g}')
                 fb.position, fb.state = h.position, s.state.value
                 fb.distance_remaining = target - h.position
                 goal_handle.publish_feedback(fb)
-                self.wait_polls(h, 1, 1.0)
             goal_handle.succeed()
             result.success, result.message = True, f'{h.name}: at {h.position:.6g}'
         except (CommandRefused, DriveError) as e:
@@ -618,7 +649,7 @@ class DriveNode(Node):
         result.final_position = h.position
         return result
 
-    def act_home(self, h: DriveHandle, goal_handle):
+    async def act_home(self, h: DriveHandle, goal_handle):
         result = Home.Result()
         fb = Home.Feedback()
 
@@ -626,7 +657,8 @@ class DriveNode(Node):
             fb.homing_state, fb.position = h.state.homing.value, h.position
             goal_handle.publish_feedback(fb)
         try:
-            result.message = self.run_homing(h, feedback, lambda: goal_handle.is_cancel_requested)
+            result.message = await self.run_homing(
+                h, feedback, lambda: goal_handle.is_cancel_requested)
             result.success = True
             goal_handle.succeed()
         except (CommandRefused, DriveError) as e:
@@ -656,8 +688,8 @@ class DriveNode(Node):
             # rate (RD4: the 1 s watchdog must be fed)
             if bus_changes or 'homing.method' in mine:
                 try:
-                    self.vendor.make_drive(self.bus, h.name, {**self.bus_params, **bus_changes,
-                                                              **h.cfg.params, **mine})
+                    self.vendor.make_drive(h.sup.bus, h.name, {
+                        **self.bus_params, **bus_changes, **h.cfg.params, **mine})
                 except ValueError as e:
                     return SetParametersResult(successful=False, reason=str(e))
         return SetParametersResult(successful=True)
@@ -665,58 +697,29 @@ class DriveNode(Node):
     def after_set_parameters(self, params: list[Parameter]) -> None:
         for p in params:
             if p.name in ('publish_rate_hz', 'command_timeout_s'):
-                self.bus_params[p.name] = p.value
-            if p.name == 'publish_rate_hz':
-                self.poll_period_s = 1.0 / p.value
+                self.bus_params[p.name] = p.value     # the supervisors read it live
             self.log.info(f'parameter {p.name} := {p.value}')
 
     # ------------------------------------------------------------------------------- shutdown
     def shutdown_drives(self) -> None:
-        """Stop motion, disable where disable_on_shutdown, close the link. No ROS needed."""
-        self.shutting_down = True
-        self.poll_stop.set()
-        if self.poll_thread.is_alive():
-            self.poll_thread.join(timeout=5.0)
-        with self.bus_lock:
-            live = [h for h in self.handles.values() if h.connected]
-            for h in live:              # every drive decelerates at once ...
-                self._shutdown_step(h, h.drive.stop)
-            for h in live:              # ... then each is disabled once it stands still
-                if h.param('disable_on_shutdown'):
-                    self._shutdown_step(h, self._wait_standstill, h, SHUTDOWN_STOP_TIMEOUT_S)
-                    self._shutdown_step(h, h.drive.disable)
-            for h in self.handles.values():
-                try:
-                    h.drive.close()
-                except Exception:  # noqa: BLE001
-                    pass
-            try:
-                self.bus.close()
-            except Exception:  # noqa: BLE001
-                pass
-
-    def _shutdown_step(self, h: DriveHandle, fn: Callable, *args) -> None:
-        try:
-            complete(fn(*args))
-        except Exception as e:  # noqa: BLE001 - go on with the other steps and drives
-            # the ROS context is gone by now: print, do not log through rclpy
-            print(f'[{self.get_name()}] {h.name}: shutdown: {fn.__name__}: {e}', flush=True)
-
-    def _wait_standstill(self, h: DriveHandle, timeout_s: float) -> None:
-        """Let the controlled stop finish before the power stage goes off (bounded)."""
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            h.state = complete(h.drive.read_state())
-            if not h.state.moving:
-                return
-            time.sleep(STANDSTILL_POLL_S)  # rate limit of the poll; nothing to wait on without ROS
+        """Stop motion, disable where disable_on_shutdown, close the links. No ROS needed."""
+        def run(sup: BusSupervisor) -> None:
+            disable = [n for n in sup.slots if self.handles[n].param('disable_on_shutdown')]
+            sup.shutdown(SHUTDOWN_STOP_TIMEOUT_S, disable)
+        threads = [threading.Thread(target=run, args=(sup,)) for sup in self.supervisors]
+        for t in threads:                  # every bus stops at once
+            t.start()
+        for t in threads:
+            t.join()
 
 
 def spin_node(node: DriveNode) -> None:
-    from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
-    executor = MultiThreadedExecutor(num_threads=4)
+    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+    # Every callback only checks and enqueues, or awaits: one thread serves them all, with
+    # the shortest publish-to-callback time (issue 9: 4 threads gave 12-120 ms p99 on 2 cores).
+    executor = SingleThreadedExecutor()
     executor.add_node(node)
-    # The poll thread waits on the bus and then needs the GIL back from the executor threads:
+    # The owner threads wait on the bus and then need the GIL back from the executor thread:
     # a short switch interval keeps that hand-over well below a transaction time.
     sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
     node.start()

@@ -1,0 +1,645 @@
+"""BusSupervisor: the one owner of a bus (no rclpy).
+
+Threads and what they own:
+- The owner thread (one per bus) makes every call into the Bus and its Drives: polls, commands,
+  service transactions, reconnects, the velocity watchdog and shutdown all run there, as jobs.
+  It alone writes a slot's runtime fields (`state`, `connected`, `identity`, `polls`, ...);
+  other threads read them (one reference assignment each, so a reader sees a whole snapshot).
+- Any other thread (ROS callbacks) only calls `submit()` / `stop()` / `arm_watchdog()` /
+  `wait_poll()`, which take `_cv` for a moment, enqueue and return a `concurrent.futures.Future`.
+
+Order (issue 9 item 1):
+- Jobs of one drive run in the order submitted, one at a time; a step-wise job (a generator, see
+  drive.py) keeps the drive until it ends, while other drives' jobs and polls run between its
+  steps, so nobody waits behind a long operation.
+- A streaming command (kind STREAM: position or velocity) replaces a STREAM job of the same
+  topic still waiting at the tail of that drive's queue: the drive gets the newest set point.
+- URGENT jobs (stop, quick stop, disable, the watchdog's stop) go before everything else: they
+  drop the drive's queued motion jobs (which would move after the stop) and cut its running
+  motion job short, and reach the wire after at most the one transaction already in flight.
+
+The velocity watchdog (issue 9 item 3): `arm_watchdog()` is called when a velocity command is
+accepted, before anything is written; only a job submitted with `disarms=True` (a stop, a
+position or homing command) that the drive confirmed disarms it. A refusal, a lost reply or a link
+loss leaves it armed; after a reconnect an expired deadline stops the drive at once. It is checked
+on the owner's clock (the loop wakes at the deadline), not once per poll.
+"""
+
+from __future__ import annotations
+
+import collections
+import concurrent.futures
+import dataclasses
+import logging
+import threading
+import time
+import traceback
+from typing import Any, Callable, Iterable
+
+from .drive import (Bus, Drive, DriveError, DriveState, IdentityError, LinkError, State, complete,
+                    is_steps)
+
+logger = logging.getLogger(__name__)
+
+URGENT, COMMAND, STREAM, MAINTENANCE = 'urgent', 'command', 'stream', 'maintenance'
+CONNECT = 'connect'     # the owner's own connection attempt
+# How often a connect that failed with IdentityError is tried before the node gives up on it.
+IDENTITY_ATTEMPTS = 3
+# After this many commands or steps while a poll is overdue, one poll goes first (fairness).
+MAX_JOBS_BEFORE_OVERDUE_POLL = 4
+# A watchdog stop that could not be sent is tried again after this long [s].
+WATCHDOG_RETRY_S = 0.1
+
+
+class Superseded(DriveError):
+    """A newer streaming command replaced this one before it was sent."""
+
+
+class Cancelled(DriveError):
+    """A stop, a disable, a link loss or shutdown dropped or cut this job short."""
+
+
+class NotConnected(DriveError):
+    """The drive is DISCONNECTED (or not driven); the job was not run."""
+
+
+@dataclasses.dataclass
+class Job:
+    drive: str
+    kind: str
+    fn: Callable[[], Any]
+    label: str
+    future: concurrent.futures.Future
+    topic: str = ''             # STREAM jobs: which stream ('position', 'velocity')
+    disarms: bool = False       # confirmed success disarms the velocity watchdog
+    motion: bool = True         # a stop of the drive drops this job, or cuts it short
+    enqueued_t: float = 0.0
+
+    def preempted_by(self, urgent: 'Job') -> bool:
+        """A stop drops motion; a disable (an URGENT job that is not motion itself) drops
+        everything but maintenance that cannot move (save, register reads)."""
+        if self.motion:
+            return True
+        return not urgent.motion and self.kind != MAINTENANCE and self.kind != CONNECT
+
+
+class Slot:
+    """Runtime state of one drive on the bus; written by the owner thread only."""
+
+    def __init__(self, name: str, drive: Drive, reconnect_period_s: float):
+        self.name = name
+        self.drive = drive
+        self.state = DriveState(state=State.DISCONNECTED)
+        self.connected = False
+        self.identity: dict[str, str] = {}
+        self.polls = 0               # successful read_state() results
+        self.reconnects = 0          # successful connects, the first one included
+        self.last_error = ''
+        self.not_driven = ''         # why the node gave up on this drive ('' while it tries)
+        self.identity_failures = 0
+        self.queue: collections.deque[Job] = collections.deque()
+        self.active: Job | None = None
+        self.active_steps = None     # generator of the running job
+        self.wake_t = 0.0            # next step of the running job / poll / connect
+        self.poll_steps = None       # generator of a read_state() in progress
+        self.poll_wake_t = 0.0
+        self.next_poll_t = 0.0
+        self.next_connect_t = 0.0
+        self.backoff_s = reconnect_period_s
+        self.velocity_deadline: float | None = None
+        self.watchdog_retry_t = 0.0
+        self.poll_waiters: list[tuple[float, Callable[[bool], None]]] = []
+
+
+class BusSupervisor:
+    """Owns one Bus and its drives in one thread; see the module docstring."""
+
+    def __init__(self, bus: Bus, drives: dict[str, Drive], settings: dict[str, Any],
+                 on_cycle: Callable[['BusSupervisor'], None] | None = None,
+                 on_connected: Callable[['BusSupervisor', Slot], str] | None = None,
+                 on_event: Callable[[str, str, str], None] | None = None,
+                 auto_enable: Iterable[str] = (), clock: Callable[[], float] = time.monotonic,
+                 name: str = 'bus'):
+        """`settings` is read live: 'publish_rate_hz', 'command_timeout_s',
+        'reconnect_period_s'. `on_cycle` runs in the owner thread after every drive was polled
+        once; `on_connected` may return a reason not to drive a drive (duplicate identity);
+        `on_event(level, drive, text)` reports what happened ('info'/'warning'/'error')."""
+        self.bus = bus
+        self.settings = settings
+        self.slots = {n: Slot(n, d, settings['reconnect_period_s']) for n, d in drives.items()}
+        self.on_cycle = on_cycle or (lambda sup: None)
+        self.on_connected = on_connected or (lambda sup, slot: '')
+        self.on_event = on_event or self._log_event
+        self.auto_enable = set(auto_enable)
+        self.clock = clock
+        self.name = name
+        self._cv = threading.Condition()
+        self._urgent: collections.deque[Job] = collections.deque()
+        self._stopping = False
+        self._shutdown_request: tuple[float, set[str]] | None = None
+        self._thread = threading.Thread(target=self._run, name=f'owner {name}', daemon=True)
+        self._jobs_since_poll = 0
+        self._timers: list[tuple[float, Callable[[], None]]] = []
+        self._cycle_polled: set[str] = set()
+        self.cycles = 0
+
+    # ---------------------------------------------------------------------- other threads
+    def start(self) -> None:
+        self._thread.start()
+
+    @property
+    def alive(self) -> bool:
+        return self._thread.is_alive()
+
+    def submit(self, drive: str, kind: str, fn: Callable[[], Any], label: str, *,
+               topic: str = '', disarms: bool = False, motion: bool = True
+               ) -> concurrent.futures.Future:
+        """Queue `fn` (called in the owner thread; may return Steps) for `drive`."""
+        fut: concurrent.futures.Future = concurrent.futures.Future()
+        job = Job(drive, kind, fn, label, fut, topic, disarms, motion, self.clock())
+        with self._cv:
+            if self._stopping:
+                fut.set_exception(Cancelled(f'{label}: the node is shutting down'))
+                return fut
+            slot = self.slots[drive]
+            if kind == URGENT:
+                self._urgent.append(job)
+            else:
+                if kind == STREAM and slot.queue:
+                    tail = slot.queue[-1]
+                    if tail.kind == STREAM and tail.topic == topic:
+                        slot.queue.pop()
+                        tail.future.set_exception(Superseded(
+                            f'{tail.label}: replaced by the newer {label} before it was sent'))
+                slot.queue.append(job)
+            self._cv.notify()
+        return fut
+
+    def arm_watchdog(self, drive: str) -> None:
+        """A velocity command was accepted: the drive must hear from us within the timeout."""
+        with self._cv:
+            self.slots[drive].velocity_deadline = \
+                self.clock() + self.settings['command_timeout_s']
+            self._cv.notify()
+
+    def watchdog_armed(self, drive: str) -> bool:
+        return self.slots[drive].velocity_deadline is not None
+
+    def wait_poll(self, drive: str, timeout_s: float, callback: Callable[[bool], None]) -> None:
+        """Call callback(True) from the owner thread after the next poll of `drive`, or
+        callback(False) once timeout_s passed or the drive is lost."""
+        with self._cv:
+            self.slots[drive].poll_waiters.append((self.clock() + timeout_s, callback))
+            self._cv.notify()
+
+    def after(self, delay_s: float, callback: Callable[[], None]) -> None:
+        """Call callback() from the owner thread once delay_s has passed."""
+        with self._cv:
+            self._timers.append((self.clock() + delay_s, callback))
+            self._cv.notify()
+
+    def shutdown(self, standstill_timeout_s: float, disable: Iterable[str] = (),
+                 join_timeout_s: float = 30.0) -> None:
+        """Stop every drive, wait (bounded) for standstill, disable those named, close the bus.
+        Runs in the owner thread; this call waits for it."""
+        with self._cv:
+            self._shutdown_request = (standstill_timeout_s, set(disable))
+            self._cv.notify()
+        if self._thread.is_alive():
+            self._thread.join(join_timeout_s)
+        else:   # never started (tests, a node that failed to start): do it here
+            self._shutdown_drives(standstill_timeout_s, set(disable))
+
+    # ------------------------------------------------------------------------ owner thread
+    def _log_event(self, level: str, drive: str, text: str) -> None:
+        getattr(logger, level)('%s: %s', drive, text)
+
+    def _run(self) -> None:
+        try:
+            while True:
+                with self._cv:
+                    request = self._shutdown_request
+                if request is not None:
+                    self._shutdown_drives(*request)
+                    return
+                delay = self._work_once()
+                if delay > 0:
+                    with self._cv:
+                        if not self._urgent and self._shutdown_request is None \
+                                and not self._new_command_ready():
+                            self._cv.wait(delay)
+        except Exception as exc:  # noqa: BLE001 - the drives are stopped below, whatever
+            try:
+                self.on_event('error', self.name, f'bus owner failed: {exc!r}\n'
+                              + traceback.format_exc())
+            finally:
+                self._shutdown_drives(1.0, set())
+
+    def _new_command_ready(self) -> bool:
+        return any(s.queue and s.active is None for s in self.slots.values())
+
+    def _work_once(self) -> float:
+        """Do one unit of work (one transaction or one step); return how long to sleep."""
+        now = self.clock()
+        with self._cv:
+            urgent = self._urgent.popleft() if self._urgent else None
+        if urgent is not None:
+            self._run_urgent(urgent)
+            return 0.0
+        self._expire_waiters(now)
+        for slot in self.slots.values():
+            if slot.not_driven and slot.connected:
+                self._drive_lost(slot, f'not driven: {slot.not_driven}')
+                return 0.0
+        for slot in self.slots.values():          # the watchdog, on its own clock
+            if slot.connected and slot.velocity_deadline is not None \
+                    and now >= slot.velocity_deadline and now >= slot.watchdog_retry_t:
+                self._watchdog_stop(slot)
+                return 0.0
+        overdue = [s for s in self.slots.values() if s.connected and s.active is None
+                   and now >= s.next_poll_t + self._period_s()]
+        if overdue and self._jobs_since_poll >= MAX_JOBS_BEFORE_OVERDUE_POLL:
+            self._poll_step(overdue[0], now)
+            return 0.0
+        for slot in self.slots.values():          # the next step of a running operation
+            if slot.active is not None and slot.active_steps is not None \
+                    and now >= slot.wake_t:
+                self._jobs_since_poll += 1
+                self._step_active(slot)
+                return 0.0
+        for slot in self._by_age():               # the oldest waiting command
+            self._jobs_since_poll += 1
+            self._start_job(slot)
+            return 0.0
+        for slot in self.slots.values():          # a poll in progress, then one due
+            if slot.poll_steps is not None and now >= slot.poll_wake_t:
+                self._poll_step(slot, now)
+                return 0.0
+        for slot in self.slots.values():
+            if slot.connected and slot.active is None and now >= slot.next_poll_t:
+                self._poll_step(slot, now)
+                return 0.0
+        for slot in self.slots.values():
+            if not slot.connected and not slot.not_driven and slot.active is None \
+                    and now >= slot.next_connect_t:
+                self._connect(slot)
+                return 0.0
+        return self._next_wake(now) - now
+
+    def _by_age(self) -> list[Slot]:
+        with self._cv:
+            ready = [s for s in self.slots.values() if s.queue and s.active is None]
+        return sorted(ready, key=lambda s: s.queue[0].enqueued_t)[:1]
+
+    def _period_s(self) -> float:
+        return 1.0 / self.settings['publish_rate_hz']
+
+    def _next_wake(self, now: float) -> float:
+        times = [now + 0.5]
+        for s in self.slots.values():
+            if s.active is not None and s.active_steps is not None:
+                times.append(s.wake_t)
+            if s.poll_steps is not None:
+                times.append(s.poll_wake_t)
+            if s.connected:
+                if s.active is None:
+                    times.append(s.next_poll_t)
+                if s.velocity_deadline is not None:
+                    times.append(max(s.velocity_deadline, s.watchdog_retry_t))
+            elif not s.not_driven:
+                times.append(s.next_connect_t)
+            times += [t for t, _ in s.poll_waiters]
+        return min(times + [t for t, _ in self._timers])
+
+    # ------------------------------------------------------------------------------ jobs
+    def _start_job(self, slot: Slot) -> None:
+        with self._cv:
+            job = slot.queue.popleft()
+        if job.future.done():          # cancelled by its waiter
+            return
+        if not slot.connected:
+            job.future.set_exception(NotConnected(
+                f'{job.label}: drive {slot.name} is DISCONNECTED ({self.bus.description})'))
+            return
+        slot.active = job
+        self._advance(slot, job.fn)
+
+    def _step_active(self, slot: Slot) -> None:
+        steps = slot.active_steps
+        self._advance(slot, lambda: next(steps))
+
+    def _advance(self, slot: Slot, call: Callable[[], Any]) -> None:
+        """Run the first call or the next step of slot.active; finish it when it ends."""
+        job = slot.active
+        try:
+            result = call()
+            if slot.active_steps is None and is_steps(result):
+                slot.active_steps = result
+                result = next(result)
+            if slot.active_steps is not None:
+                slot.wake_t = self.clock() + (result or 0.0)
+                return
+        except StopIteration as stop:
+            result = stop.value
+        except Exception as exc:  # noqa: BLE001 - every failure goes to the job's waiter
+            self._finish(slot)
+            if job.kind == CONNECT:
+                self._connect_failed(slot, exc)
+            else:
+                self._failed(slot, job, exc)
+            return
+        self._finish(slot)
+        if job.kind == CONNECT:
+            self._connected(slot, *result)
+            return
+        if job.disarms:
+            slot.velocity_deadline = None
+        job.future.set_result(result)
+
+    def _finish(self, slot: Slot) -> None:
+        slot.active, slot.active_steps = None, None
+
+    def _failed(self, slot: Slot, job: Job, exc: Exception) -> None:
+        if isinstance(exc, LinkError):
+            self._drive_lost(slot, f'{job.label}: {exc}')
+        elif not isinstance(exc, DriveError):
+            self.on_event('error', slot.name, f'internal error in {job.label}: {exc!r}\n'
+                          + traceback.format_exc())
+            exc = DriveError(f'internal error in {job.label}: {exc!r}')
+        if not job.future.done():
+            job.future.set_exception(exc)
+
+    def _run_urgent(self, job: Job) -> None:
+        """Drop the drive's queued jobs that the urgent one preempts (they would move after
+        the stop), cut its running one short, and run the job now."""
+        slot = self.slots[job.drive]
+        with self._cv:
+            dropped = [j for j in slot.queue if j.preempted_by(job)]
+            slot.queue = collections.deque(j for j in slot.queue if not j.preempted_by(job))
+        for j in dropped:
+            j.future.set_exception(Cancelled(f'{j.label}: dropped by {job.label}'))
+        if slot.active is not None and slot.active.preempted_by(job):
+            self._cut_short(slot, f'cut short by {job.label}')
+        if not slot.connected:
+            job.future.set_exception(NotConnected(
+                f'{job.label}: drive {slot.name} is DISCONNECTED ({self.bus.description})'))
+            return
+        if slot.active is not None:
+            # a maintenance job keeps the drive: the urgent one runs between its steps
+            self._advance_other(slot, job)
+            return
+        slot.active = job     # a step-wise one (a disable walking the state machine) goes on
+        self._advance(slot, job.fn)   # as the drive's running job, before anything queued
+
+    def _advance_other(self, slot: Slot, job: Job) -> None:
+        try:
+            result = complete(job.fn())
+        except Exception as exc:  # noqa: BLE001
+            self._failed(slot, job, exc)
+            return
+        if job.disarms:
+            slot.velocity_deadline = None
+        job.future.set_result(result)
+
+    def _cut_short(self, slot: Slot, why: str) -> None:
+        job, steps = slot.active, slot.active_steps
+        self._finish(slot)
+        if steps is not None:
+            try:
+                steps.close()
+            except Exception as exc:  # noqa: BLE001 - a vendor finally clause failed
+                self.on_event('warning', slot.name, f'{job.label}: closing: {exc!r}')
+        if not job.future.done():
+            job.future.set_exception(Cancelled(f'{job.label}: {why}'))
+
+    def _watchdog_stop(self, slot: Slot) -> None:
+        timeout_s = self.settings['command_timeout_s']
+        self.on_event('warning', slot.name, f'velocity watchdog: no velocity_command for '
+                      f'{timeout_s:g} s (command_timeout_s), stopping')
+        slot.watchdog_retry_t = self.clock() + WATCHDOG_RETRY_S
+        job = Job(slot.name, URGENT, slot.drive.stop, 'watchdog stop',
+                  concurrent.futures.Future(), disarms=True, enqueued_t=self.clock())
+        job.future.add_done_callback(lambda f: f.exception() and self.on_event(
+            'error', slot.name, f'velocity watchdog: stop failed: {f.exception()}'))
+        self._run_urgent(job)
+
+    # ----------------------------------------------------------------------------- polls
+    def _poll_step(self, slot: Slot, now: float) -> None:
+        self._jobs_since_poll = 0
+        try:
+            if slot.poll_steps is None:
+                result = slot.drive.read_state()
+                if is_steps(result):
+                    slot.poll_steps = result
+                    slot.next_poll_t = max(slot.next_poll_t + self._period_s(), now)
+                    result = next(result)
+                    slot.poll_wake_t = self.clock() + (result or 0.0)
+                    return
+                state = result
+                slot.next_poll_t = max(slot.next_poll_t + self._period_s(), now)
+            else:
+                delay = next(slot.poll_steps)
+                slot.poll_wake_t = self.clock() + (delay or 0.0)
+                return
+        except StopIteration as stop:
+            slot.poll_steps = None
+            state = stop.value
+        except LinkError as exc:
+            slot.poll_steps = None
+            self._drive_lost(slot, f'read state: {exc}')
+            return
+        except DriveError as exc:
+            slot.poll_steps = None
+            self._note_error(slot, f'read state: {exc}')
+            return
+        except Exception as exc:  # noqa: BLE001 - unknown trouble: treat as a link loss
+            slot.poll_steps = None
+            self.on_event('error', slot.name, f'read_state: {exc!r}\n' + traceback.format_exc())
+            self._drive_lost(slot, f'unexpected error {exc!r}')
+            return
+        slot.state = state
+        slot.polls += 1
+        self._resolve_waiters(slot, True)
+        self._cycle_polled.add(slot.name)
+        if self._cycle_polled >= {s.name for s in self.slots.values() if s.connected}:
+            self._cycle_polled = set()
+            self.cycles += 1
+            self.on_cycle(self)
+
+    def _resolve_waiters(self, slot: Slot, ok: bool) -> None:
+        with self._cv:
+            waiters, slot.poll_waiters = slot.poll_waiters, []
+        for _, callback in waiters:
+            callback(ok)
+
+    def _expire_waiters(self, now: float) -> None:
+        if any(t <= now for t, _ in self._timers):
+            with self._cv:
+                due = [c for t, c in self._timers if t <= now]
+                self._timers = [(t, c) for t, c in self._timers if t > now]
+            for callback in due:
+                callback()
+        for slot in self.slots.values():
+            if not any(t <= now for t, _ in slot.poll_waiters):
+                continue
+            with self._cv:
+                expired = [w for w in slot.poll_waiters if w[0] <= now]
+                slot.poll_waiters = [w for w in slot.poll_waiters if w[0] > now]
+            for _, callback in expired:
+                callback(False)
+
+    def _note_error(self, slot: Slot, msg: str) -> None:
+        if msg != slot.last_error:
+            self.on_event('error', slot.name, msg)
+        slot.last_error = msg
+
+    # ------------------------------------------------------------------------ link state
+    def _drive_lost(self, slot: Slot, why: str) -> None:
+        if not slot.connected:
+            return
+        # velocity_deadline stays: a velocity run the drive may still be doing is stopped by
+        # the watchdog as soon as the drive answers again.
+        slot.connected = False
+        slot.poll_steps = None
+        if slot.active is not None:
+            self._cut_short(slot, f'link lost ({why})')
+        with self._cv:
+            queued, slot.queue = list(slot.queue), collections.deque()
+        for job in queued:
+            job.future.set_exception(NotConnected(f'{job.label}: link lost ({why})'))
+        slot.state = DriveState(state=State.DISCONNECTED, position_steps=slot.state.position_steps,
+                                homed=slot.state.homed)
+        slot.backoff_s = self.settings['reconnect_period_s']
+        slot.next_connect_t = self.clock() + slot.backoff_s
+        self.on_event('error', slot.name, f'link lost ({why}); reconnecting every '
+                      f"{self.settings['reconnect_period_s']:g} s and more (back-off)")
+        self._resolve_waiters(slot, False)
+        self._cycle_polled.discard(slot.name)
+        if not any(s.connected for s in self.slots.values()):
+            self._close_bus()
+
+    def _close_bus(self) -> None:
+        try:
+            self.bus.close()
+        except Exception as exc:  # noqa: BLE001 - closing a dead link may fail any way
+            logger.debug('close after link loss: %r', exc)
+
+    def _connect(self, slot: Slot) -> None:
+        """Start one connection attempt: a job of the drive's own, step-wise like any other
+        (a CANopen boot-up wait gives the bus to the other drives)."""
+        slot.active = Job(slot.name, CONNECT, lambda: self._connect_steps(slot), 'connect',
+                          concurrent.futures.Future(), motion=False, enqueued_t=self.clock())
+        self._advance(slot, slot.active.fn)
+
+    def _connect_steps(self, slot: Slot):
+        if not self.bus.is_open:
+            self.bus.open()
+        identity = yield from _steps(slot.drive.connect())
+        state = yield from _steps(slot.drive.read_state())
+        return identity, state
+
+    def _connected(self, slot: Slot, identity: dict[str, str], state: DriveState) -> None:
+        slot.identity, slot.state = identity, state
+        why = self.on_connected(self, slot)
+        if why:
+            slot.not_driven = why
+            slot.state = DriveState(state=State.DISCONNECTED)
+            self.on_event('error', slot.name, f'not driven: {why}')
+            return
+        slot.connected = True
+        slot.identity_failures = 0
+        slot.reconnects += 1
+        slot.last_error = ''
+        slot.backoff_s = self.settings['reconnect_period_s']
+        slot.next_poll_t = self.clock()
+        identity_text = ', '.join(f'{k}={v}' for k, v in identity.items())
+        self.on_event('info', slot.name, f'connected ({identity_text}); state '
+                      f'{state.state.value}, position {state.position_steps} steps')
+        if slot.name in self.auto_enable and slot.reconnects == 1:
+            self.submit(slot.name, COMMAND, slot.drive.enable, 'auto_enable', motion=False) \
+                .add_done_callback(lambda f, n=slot.name: self._auto_enabled(n, f))
+
+    def _auto_enabled(self, name: str, fut: concurrent.futures.Future) -> None:
+        if fut.exception() is None:
+            self.on_event('info', name, 'enabled at start-up (auto_enable)')
+        else:
+            self.on_event('error', name, f'auto_enable failed: {fut.exception()}')
+
+    def _connect_failed(self, slot: Slot, exc: Exception) -> None:
+        if not isinstance(exc, DriveError):
+            self.on_event('error', slot.name, f'connect: {exc!r}\n' + ''.join(
+                traceback.format_exception(exc)))
+        if not any(s.connected for s in self.slots.values()):
+            self._close_bus()
+        period = self.settings['reconnect_period_s']
+        if isinstance(exc, IdentityError):
+            slot.identity_failures += 1
+            if slot.identity_failures >= IDENTITY_ATTEMPTS:
+                slot.not_driven = str(exc)
+                self.on_event('error', slot.name, f'not driven: {exc} ({slot.identity_failures}'
+                              ' attempts; fix the configuration or the drive, then restart '
+                              'the node)')
+                return
+        if slot.backoff_s == period or slot.reconnects == 0:
+            self.on_event('warning', slot.name, f'cannot connect on {self.bus.description}: '
+                          f'{exc}; retrying')
+        slot.last_error = str(exc)
+        slot.next_connect_t = self.clock() + slot.backoff_s
+        slot.backoff_s = min(slot.backoff_s * 2, 8 * period)
+
+    def refuse_drive(self, name: str, why: str) -> None:
+        """From any thread: stop driving `name` (the owner drops its link at its next turn)."""
+        with self._cv:
+            self.slots[name].not_driven = why
+            self._cv.notify()
+        self.on_event('error', name, f'not driven: {why}')
+
+    # --------------------------------------------------------------------------- shutdown
+    def _shutdown_drives(self, standstill_timeout_s: float, disable: set[str]) -> None:
+        with self._cv:
+            self._stopping = True
+            queued = [j for s in self.slots.values() for j in s.queue] + list(self._urgent)
+            for s in self.slots.values():
+                s.queue.clear()
+            self._urgent.clear()
+        for job in queued:
+            job.future.set_exception(Cancelled(f'{job.label}: the node is shutting down'))
+        live = [s for s in self.slots.values() if s.connected]
+        for s in self.slots.values():
+            if s.active is not None:
+                self._cut_short(s, 'the node is shutting down')
+            s.poll_steps = None
+            self._resolve_waiters(s, False)
+        for s in live:                 # every drive decelerates at once ...
+            self._shutdown_step(s, 'stop', s.drive.stop)
+        deadline = self.clock() + standstill_timeout_s
+        for s in live:                 # ... then each is disabled once it stands still
+            if s.name in disable:
+                self._shutdown_step(s, 'wait for standstill', self._wait_standstill, s, deadline)
+                self._shutdown_step(s, 'disable', s.drive.disable)
+        for s in self.slots.values():
+            try:
+                s.drive.close()
+            except Exception:  # noqa: BLE001
+                pass
+        self._close_bus()
+
+    def _shutdown_step(self, slot: Slot, what: str, fn: Callable, *args) -> None:
+        try:
+            complete(fn(*args))
+        except Exception as exc:  # noqa: BLE001 - go on with the other steps and drives
+            self.on_event('error', slot.name, f'shutdown: {what}: {exc}')
+
+    def _wait_standstill(self, slot: Slot, deadline: float) -> None:
+        while self.clock() < deadline:
+            slot.state = complete(slot.drive.read_state())
+            if not slot.state.moving:
+                return
+            time.sleep(0.02)  # poll rate limit at shutdown: there is nothing else to wait on
+
+
+def _steps(result: Any):
+    """`yield from _steps(drive.method())`: the result of a plain or a step-wise call."""
+    if is_steps(result):
+        return (yield from result)
+    return result

@@ -1,0 +1,396 @@
+"""BusSupervisor without ROS: order, preemption, the velocity watchdog, link loss, shutdown.
+
+The drives here are a scripted implementation of the Drive interface (`ScriptDrive`): each call
+takes one "transaction" of TX_S on a shared line and is recorded with its time, so the tests
+see the order in which calls reached the wire. The vendor drives are tested against their
+simulators elsewhere; this file tests the scheduling that sits above all of them.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import threading
+import time
+
+import pytest
+
+from stepper_drivers.drive import (Bus, Drive, DriveError, DriveState, IdentityError, LinkError,
+                                   State)
+from stepper_drivers.supervisor import (COMMAND, MAINTENANCE, STREAM, URGENT, BusSupervisor,
+                                        Cancelled, NotConnected, Superseded)
+from stepper_drivers.tools.processes import wait_for
+
+TX_S = 0.01            # one transaction on the scripted line
+RATE_HZ = 20.0         # poll rate: a 50 ms period, much longer than a transaction
+
+
+class Line(Bus):
+    description = 'scripted line'
+
+    def __init__(self):
+        self.open_ = False
+        self.wire: list[tuple[float, str, str, tuple]] = []   # (t, drive, call, args)
+        self.lock = threading.Lock()
+
+    def open(self):
+        self.open_ = True
+
+    def close(self):
+        self.open_ = False
+
+    @property
+    def is_open(self):
+        return self.open_
+
+    def transact(self, drive: str, call: str, *args):
+        """One transaction: it takes TX_S and is on the wire when it starts."""
+        with self.lock:
+            self.wire.append((time.monotonic(), drive, call, args))
+        time.sleep(TX_S)
+
+    def calls(self, drive=None, call=None):
+        with self.lock:
+            return [w for w in self.wire if (drive is None or w[1] == drive)
+                    and (call is None or w[2] == call)]
+
+
+class ScriptDrive(Drive):
+    def __init__(self, bus: Line, name: str, params=None):
+        super().__init__(bus, name, params or {})
+        self.line = bus
+        self.fail: dict[str, Exception] = {}     # call name -> exception to raise once
+        self.fail_always: dict[str, Exception] = {}
+        self.velocity = 0.0
+        self.enabled = True
+
+    def _tx(self, call, *args):
+        exc = self.fail.pop(call, None) or self.fail_always.get(call)
+        self.line.transact(self.name, call, *args)
+        if exc is not None:
+            raise exc
+
+    def connect(self):
+        self._tx('connect')
+        return {'serial_number': '7'}
+
+    def read_state(self):
+        self._tx('read_state')
+        return DriveState(state=State.OPERATION_ENABLED, enabled=self.enabled,
+                          moving=self.velocity != 0.0, velocity_steps_s=self.velocity)
+
+    def enable(self):
+        for _ in range(5):               # a state-machine walk: five transactions
+            self._tx('enable step')
+            yield TX_S
+        self.enabled = True
+
+    def disable(self):
+        self._tx('disable')
+        self.enabled = False
+        self.velocity = 0.0
+
+    def move_to(self, target_steps, motion):
+        self._tx('move_to', target_steps)
+
+    def set_velocity(self, velocity_steps_s, motion):
+        self.velocity = velocity_steps_s    # the write reaches the drive, even if its reply
+        self._tx('set_velocity', velocity_steps_s)   # is then lost
+
+    def stop(self, quick=False):
+        self._tx('stop')
+        self.velocity = 0.0
+
+    def start_homing(self, homing):
+        for i in range(20):              # a long homing start: 20 steps of 50 ms
+            self._tx('homing step', i)
+            yield 0.05
+        return ''
+
+    def fault_reset(self):
+        self._tx('fault_reset')
+        return ''
+
+    def save_params(self):
+        for i in range(10):
+            self._tx('save step', i)
+            yield 0.05
+        return 'saved'
+
+    def read_register(self, address, data_type):
+        self._tx('read_register', address)
+        return 1
+
+    def write_register(self, address, data_type, value):
+        self._tx('write_register', address, value)
+
+
+def make(n_drives=2, **settings):
+    line = Line()
+    drives = {f'axis{i + 1}': ScriptDrive(line, f'axis{i + 1}') for i in range(n_drives)}
+    cfg = {'publish_rate_hz': RATE_HZ, 'command_timeout_s': 0.3, 'reconnect_period_s': 0.05}
+    cfg.update(settings)
+    events = []
+    sup = BusSupervisor(line, drives, cfg, on_event=lambda *e: events.append(e))
+    sup.events = events
+    sup.start()
+    wait_for(lambda: all(s.connected and s.polls > 0 for s in sup.slots.values()), 2.0,
+             'every drive connected and polled')
+    return sup, line, drives
+
+
+@pytest.fixture
+def bus():
+    sups = []
+
+    def factory(*args, **kw):
+        sup, line, drives = make(*args, **kw)
+        sups.append(sup)
+        return sup, line, drives
+    yield factory
+    for sup in sups:
+        sup.shutdown(0.5)
+
+
+def result(fut: concurrent.futures.Future, timeout_s=3.0):
+    return fut.result(timeout_s)
+
+
+# ----------------------------------------------------------------------------------- order
+def test_jobs_of_one_drive_run_in_the_order_submitted(bus):
+    sup, line, d = bus()
+    futs = [sup.submit('axis1', COMMAND, lambda i=i: d['axis1'].move_to(i, None), f'm{i}')
+            for i in range(10)]
+    for f in futs:
+        result(f)
+    assert [c[3][0] for c in line.calls('axis1', 'move_to')] == list(range(10))
+
+
+def test_a_newer_stream_command_replaces_the_one_still_waiting(bus):
+    sup, line, d = bus()
+    # keep the drive busy so the stream commands wait
+    busy = sup.submit('axis1', MAINTENANCE, d['axis1'].save_params, 'save', motion=False)
+    wait_for(lambda: line.calls('axis1', 'save step'), 1.0, 'save started')
+    f1 = sup.submit('axis1', STREAM, lambda: d['axis1'].set_velocity(1.0, None), 'v1',
+                    topic='velocity')
+    f2 = sup.submit('axis1', STREAM, lambda: d['axis1'].set_velocity(2.0, None), 'v2',
+                    topic='velocity')
+    with pytest.raises(Superseded, match='replaced by the newer v2'):
+        result(f1)
+    result(f2)
+    result(busy)
+    assert [c[3][0] for c in line.calls('axis1', 'set_velocity')] == [2.0]
+
+
+def test_a_stream_command_does_not_jump_over_a_command_between(bus):
+    sup, line, d = bus()
+    busy = sup.submit('axis1', MAINTENANCE, d['axis1'].save_params, 'save', motion=False)
+    wait_for(lambda: line.calls('axis1', 'save step'), 1.0, 'save started')
+    f1 = sup.submit('axis1', STREAM, lambda: d['axis1'].move_to(1, None), 'p1', topic='position')
+    f2 = sup.submit('axis1', COMMAND, lambda: d['axis1'].fault_reset(), 'reset', motion=False)
+    f3 = sup.submit('axis1', STREAM, lambda: d['axis1'].move_to(3, None), 'p3', topic='position')
+    for f in (busy, f1, f2, f3):
+        result(f)
+    calls = [c[2] for c in line.calls('axis1') if c[2] in ('move_to', 'fault_reset')]
+    assert calls == ['move_to', 'fault_reset', 'move_to']
+
+
+def test_many_publishers_alternating_then_zero_end_stopped(bus):
+    """1000 alternating velocity commands from 4 threads, then one final 0.0: the last
+    velocity the drive got is 0.0 (no older 1.0 overtakes it)."""
+    sup, line, d = bus(n_drives=1)
+    barrier = threading.Barrier(4)
+
+    def publisher(k):
+        barrier.wait()
+        for i in range(250):
+            v = 1.0 if (i + k) % 2 else -1.0
+            sup.arm_watchdog('axis1')
+            sup.submit('axis1', STREAM, lambda v=v: d['axis1'].set_velocity(v, None), f'v{v}',
+                       topic='velocity')
+    threads = [threading.Thread(target=publisher, args=(k,)) for k in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    last = sup.submit('axis1', STREAM, lambda: d['axis1'].set_velocity(0.0, None), 'v0',
+                      topic='velocity', disarms=True)
+    result(last, 10.0)
+    assert line.calls('axis1', 'set_velocity')[-1][3][0] == 0.0
+    assert d['axis1'].velocity == 0.0
+    assert not sup.watchdog_armed('axis1')
+    # coalescing: far fewer writes than commands, and none after the final 0.0
+    assert len(line.calls('axis1', 'set_velocity')) < 1001
+
+
+# ------------------------------------------------------------------------------ preemption
+def test_a_long_operation_gives_the_bus_to_the_other_drives(bus):
+    sup, line, d = bus()
+    fut = sup.submit('axis1', COMMAND, lambda: d['axis1'].start_homing(None), 'home')
+    wait_for(lambda: line.calls('axis1', 'homing step'), 1.0, 'homing started')
+    t0 = time.monotonic()
+    polls0 = sup.slots['axis2'].polls
+    wait_for(lambda: len(line.calls('axis1', 'homing step')) >= 10, 3.0, 'ten homing steps')
+    elapsed = time.monotonic() - t0
+    # axis2 keeps its poll rate during axis1's operation (one poll missed at most)
+    assert sup.slots['axis2'].polls - polls0 >= int(elapsed * RATE_HZ) - 1
+    result(fut)
+
+
+def test_stop_of_another_drive_during_a_long_operation_goes_next(bus):
+    sup, line, d = bus()
+    fut = sup.submit('axis1', MAINTENANCE, d['axis1'].save_params, 'save', motion=False)
+    wait_for(lambda: line.calls('axis1', 'save step'), 1.0, 'save started')
+    t0 = time.monotonic()
+    stop = sup.submit('axis2', URGENT, d['axis2'].stop, 'stop', disarms=True)
+    result(stop)
+    stop_t = line.calls('axis2', 'stop')[0][0]
+    # nothing but the one transaction in flight went before it
+    before = [c for c in line.wire if t0 <= c[0] < stop_t]
+    assert len(before) <= 1, before
+    assert stop_t - t0 <= TX_S + 0.05
+    assert result(fut) == 'saved'       # the save went on
+
+
+def test_stop_during_homing_cuts_it_short_and_drops_queued_motion(bus):
+    sup, line, d = bus()
+    home = sup.submit('axis1', COMMAND, lambda: d['axis1'].start_homing(None), 'home')
+    queued = sup.submit('axis1', STREAM, lambda: d['axis1'].move_to(5, None), 'p5',
+                        topic='position')
+    wait_for(lambda: line.calls('axis1', 'homing step'), 1.0, 'homing started')
+    stop = sup.submit('axis1', URGENT, d['axis1'].stop, 'stop', disarms=True)
+    result(stop)
+    n_steps = len(line.calls('axis1', 'homing step'))
+    with pytest.raises(Cancelled, match='cut short by stop'):
+        result(home)
+    with pytest.raises(Cancelled, match='dropped by stop'):
+        result(queued)
+    sup.submit('axis1', COMMAND, d['axis1'].fault_reset, 'sync', motion=False).result(2.0)
+    assert len(line.calls('axis1', 'homing step')) == n_steps      # no step after the stop
+    assert not line.calls('axis1', 'move_to')
+
+
+def test_disable_drops_a_queued_enable_but_a_stop_does_not(bus):
+    sup, line, d = bus()
+    busy = sup.submit('axis1', MAINTENANCE, d['axis1'].save_params, 'save', motion=False)
+    wait_for(lambda: line.calls('axis1', 'save step'), 1.0, 'save started')
+    enable = sup.submit('axis1', COMMAND, d['axis1'].enable, 'enable', motion=False)
+    result(sup.submit('axis1', URGENT, d['axis1'].stop, 'stop', disarms=True))
+    assert not enable.done()
+    result(sup.submit('axis1', URGENT, d['axis1'].disable, 'disable', disarms=True,
+                      motion=False))
+    with pytest.raises(Cancelled, match='dropped by disable'):
+        result(enable)
+    result(busy)
+
+
+# -------------------------------------------------------------------------------- watchdog
+def _stop_time(line, drive, after):
+    calls = [c for c in line.calls(drive, 'stop') if c[0] >= after]
+    return calls[0][0] if calls else None
+
+
+def test_watchdog_stops_on_its_own_clock_not_at_the_next_poll(bus):
+    timeout_s = 0.3
+    sup, line, d = bus(publish_rate_hz=2.0, command_timeout_s=timeout_s)   # 0.5 s polls
+    t0 = time.monotonic()
+    sup.arm_watchdog('axis1')
+    result(sup.submit('axis1', STREAM, lambda: d['axis1'].set_velocity(5.0, None), 'v5',
+                      topic='velocity'))
+    wait_for(lambda: _stop_time(line, 'axis1', t0), timeout_s + 1.0, 'watchdog stop')
+    late = _stop_time(line, 'axis1', t0) - (t0 + timeout_s)
+    # within one transaction in flight (and scheduling), far below the 0.5 s poll period
+    assert 0.0 <= late <= TX_S + 0.05, late
+
+
+@pytest.mark.parametrize('refused', ['stop', 'move_to', 'start_homing'])
+def test_a_refused_command_during_a_velocity_run_leaves_the_watchdog_armed(bus, refused):
+    timeout_s = 0.3
+    sup, line, d = bus(command_timeout_s=timeout_s)
+    drive = d['axis1']
+    sup.arm_watchdog('axis1')
+    result(sup.submit('axis1', STREAM, lambda: drive.set_velocity(5.0, None), 'v5',
+                      topic='velocity'))
+    t0 = time.monotonic()
+    drive.fail[refused if refused != 'start_homing' else 'homing step'] = \
+        DriveError(f'{refused} refused: stop first')
+    fn = {'stop': drive.stop, 'move_to': lambda: drive.move_to(1, None),
+          'start_homing': lambda: drive.start_homing(None)}[refused]
+    kind = URGENT if refused == 'stop' else COMMAND
+    with pytest.raises(DriveError, match='refused'):
+        result(sup.submit('axis1', kind, fn, refused, disarms=True))
+    assert sup.watchdog_armed('axis1')
+    stops = 2 if refused == 'stop' else 1          # the refused one, then the watchdog's
+    wait_for(lambda: len(line.calls('axis1', 'stop')) >= stops, timeout_s + 1.0,
+             'watchdog stop')
+    assert line.calls('axis1', 'stop')[-1][0] - t0 <= timeout_s + TX_S + 0.05
+    wait_for(lambda: drive.velocity == 0.0 and not sup.watchdog_armed('axis1'), 5 * TX_S,
+             'the stop done and confirmed')
+
+
+def test_a_lost_reply_to_a_velocity_write_is_stopped_after_the_reconnect(bus):
+    timeout_s = 0.3
+    sup, line, d = bus(command_timeout_s=timeout_s)
+    drive = d['axis1']
+    drive.fail['set_velocity'] = LinkError('no answer (timeout)')   # the write reached it
+    sup.arm_watchdog('axis1')
+    t0 = time.monotonic()
+    with pytest.raises(LinkError):
+        result(sup.submit('axis1', STREAM, lambda: drive.set_velocity(5.0, None), 'v5',
+                          topic='velocity'))
+    assert drive.velocity == 5.0 and sup.watchdog_armed('axis1')
+    wait_for(lambda: _stop_time(line, 'axis1', t0), timeout_s + 2.0, 'watchdog stop')
+    wait_for(lambda: drive.velocity == 0.0 and not sup.watchdog_armed('axis1'), 5 * TX_S,
+             'the stop done and confirmed')
+
+
+def test_a_stop_refused_while_disconnected_leaves_the_watchdog_armed(bus):
+    timeout_s = 0.3
+    sup, line, d = bus(command_timeout_s=timeout_s, reconnect_period_s=0.2)
+    drive = d['axis1']
+    sup.arm_watchdog('axis1')
+    result(sup.submit('axis1', STREAM, lambda: drive.set_velocity(5.0, None), 'v5',
+                      topic='velocity'))
+    drive.fail_always['read_state'] = LinkError('link down')
+    drive.fail_always['connect'] = LinkError('link down')
+    wait_for(lambda: not sup.slots['axis1'].connected, 1.0, 'link lost')
+    with pytest.raises(NotConnected):
+        result(sup.submit('axis1', URGENT, drive.stop, 'stop', disarms=True))
+    assert sup.watchdog_armed('axis1')
+    t_back = time.monotonic()
+    drive.fail_always.clear()
+    wait_for(lambda: _stop_time(line, 'axis1', t_back), 2.0, 'stop after the reconnect')
+    wait_for(lambda: drive.velocity == 0.0, 5 * TX_S, 'the stop done')
+
+
+# --------------------------------------------------------------------------- link, identity
+def test_an_identity_error_stops_the_retries(bus):
+    line = Line()
+    drive = ScriptDrive(line, 'axis1')
+    drive.fail_always['connect'] = IdentityError('register 1152 reads 0x1234: not an X')
+    events = []
+    sup = BusSupervisor(line, {'axis1': drive}, {'publish_rate_hz': RATE_HZ,
+                        'command_timeout_s': 0.3, 'reconnect_period_s': 0.02},
+                        on_event=lambda *e: events.append(e))
+    sup.start()
+    try:
+        wait_for(lambda: sup.slots['axis1'].not_driven, 3.0, 'given up')
+        assert 'register 1152' in sup.slots['axis1'].not_driven
+        n = len(line.calls('axis1', 'connect'))
+        assert n == 3
+        time.sleep(0.2)   # several reconnect periods: no further attempt may come
+        assert len(line.calls('axis1', 'connect')) == n
+    finally:
+        sup.shutdown(0.5)
+
+
+def test_shutdown_stops_every_drive_then_disables_those_named(bus):
+    sup, line, d = bus()
+    for n in ('axis1', 'axis2'):
+        d[n].velocity = 3.0
+    t0 = time.monotonic()
+    sup.shutdown(1.0, disable=['axis2'])
+    assert _stop_time(line, 'axis1', t0) and _stop_time(line, 'axis2', t0)
+    assert [c[1] for c in line.calls(call='disable') if c[0] >= t0] == ['axis2']
+    assert not line.is_open
+    with pytest.raises(Cancelled):
+        result(sup.submit('axis1', COMMAND, d['axis1'].fault_reset, 'late'))
