@@ -9,14 +9,19 @@ import os
 
 from ament_index_python.packages import get_package_share_directory
 from launch import LaunchDescription
-from launch.actions import IncludeLaunchDescription
+from launch.actions import GroupAction, IncludeLaunchDescription
 from launch.launch_description_sources import PythonLaunchDescriptionSource
 
 
 def include(launch_file):
     path = os.path.join(get_package_share_directory('stepper_drivers'), 'launch', launch_file)
-    return IncludeLaunchDescription(PythonLaunchDescriptionSource(path),
-                                    launch_arguments={'sim': 'true'}.items())
+    # Launch configurations are global to a launch run: IncludeLaunchDescription sets its
+    # arguments in the current scope and DeclareLaunchArgument keeps a value already set, so the
+    # first file's params_file default would configure every later vendor's node. A scoped group
+    # (launch.actions.GroupAction, scoped=True) drops what the included file sets when it ends.
+    return GroupAction([IncludeLaunchDescription(PythonLaunchDescriptionSource(path),
+                                                 launch_arguments={'sim': 'true'}.items())],
+                       scoped=True)
 
 
 def generate_launch_description():

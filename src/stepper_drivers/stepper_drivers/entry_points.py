@@ -15,14 +15,17 @@ VENDOR_MODULES = {
 
 def run(exe: str, argv: list[str] | None = None) -> int:
     import rclpy
-    from rclpy.utilities import remove_ros_args
 
     from .node import DriveNode, spin_node
-    from .params import ParameterError, declare_all
+    from .params import ParameterError, declare_all, non_ros_args
 
     vendor = importlib.import_module(VENDOR_MODULES[exe]).VENDOR
     argv = sys.argv if argv is None else argv
-    extra = remove_ros_args(argv)[1:]
+    try:
+        extra = non_ros_args(argv)[1:]      # a missing or broken params file fails here
+    except ParameterError as e:
+        print(f'{exe}: {e}', file=sys.stderr, flush=True)
+        return 2
     if extra:
         print(f'{exe}: unexpected arguments {extra}; usage: {exe} --ros-args --params-file '
               'FILE.yaml', file=sys.stderr)

@@ -11,13 +11,16 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any, Iterable
+import re
+from typing import Any, Iterable, Sequence
 
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
 from rclpy.exceptions import (InvalidParameterTypeException, InvalidParameterValueException,
                               ParameterUninitializedException)
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rclpy.utilities import remove_ros_args
 
 from .drive import ParamSpec, Vendor
 from .units import UnitConversion
@@ -26,7 +29,42 @@ INF = float('inf')
 
 
 class ParameterError(Exception):
-    """A bad parameter value; str() is the one line shown to the user."""
+    """A bad parameter value or params file; str() is the one line shown to the user."""
+
+
+# rcl appends the C source location of each error frame: ", at /project/src/parse.c:782"
+_RCL_LOCATION = re.compile(r',? at \S+\.c:\d+')
+_RCL_PARAMS_FILE = re.compile(r"Couldn't parse params file: '--params-file (.*)'\. Error: (.*)")
+
+
+def non_ros_args(argv: Sequence[str]) -> list[str]:
+    """argv without its ROS arguments (rclpy's remove_ros_args); a params file that cannot be
+    read or parsed, or a ROS argument rcl refuses, raises ParameterError naming it.
+
+    rcl parses every --params-file already here; rclpy.init would parse them again and raise
+    RCLError after logging its own error line, so an executable calls this first.
+    """
+    try:
+        return remove_ros_args(list(argv))
+    except _rclpy.UnknownROSArgsError as e:
+        problem = f'unknown ROS arguments {e}'
+    except _rclpy.RCLInvalidROSArgsError as e:
+        problem = _ros_args_problem(str(e))
+    raise ParameterError(problem)
+
+
+def _ros_args_problem(rcl_error: str) -> str:
+    text = _RCL_LOCATION.sub('', rcl_error)
+    match = _RCL_PARAMS_FILE.search(text)
+    if match is None:
+        return text
+    path, why = match.groups()
+    try:
+        with open(path, 'rb'):
+            pass
+    except OSError as e:
+        return f'params file {path}: cannot be read ({e.strerror})'
+    return f'params file {path}: not a ROS 2 params file ({why})'
 
 
 @dataclasses.dataclass(frozen=True)
@@ -96,6 +134,8 @@ DRIVE_PARAMS = (
 )
 
 RUNTIME_DRIVE_PARAMS = frozenset(p.name for p in DRIVE_PARAMS if not p.read_only)
+# Parameters rclpy declares on every node itself.
+IMPLICIT_PARAMS = ('use_sim_time', 'start_type_description_service')
 
 
 def _descriptor(p: P | ParamSpec) -> ParameterDescriptor:
@@ -120,6 +160,8 @@ def _allowed(p: P | ParamSpec) -> str:
         return 'one of ' + ', '.join(p.choices)
     if isinstance(p.default, bool):
         return 'true or false'
+    if isinstance(p.default, list):
+        return 'a list of strings'
     kind = 'an integer' if isinstance(p.default, int) else 'a number'
     lo = '' if p.min_value is None else f' from {p.min_value:g}'
     hi = '' if p.max_value is None else f' to {p.max_value:g}'
@@ -157,6 +199,12 @@ def declare(node: Node, full_name: str, p: P | ParamSpec, default: Any = None) -
                              f'(allowed: {_allowed(p)})') from None
     except ParameterUninitializedException:
         raise ParameterError(f'parameter {full_name} must be set') from None
+    if value is None:
+        # rcl cannot type an empty YAML list ([]): it leaves the parameter NOT_SET.
+        if isinstance(default, list):
+            return []
+        raise ParameterError(f'parameter {full_name}: [] is not allowed (allowed: '
+                             f'{_allowed(p)})')
     if p.choices and value not in p.choices:
         raise ParameterError(f'parameter {full_name}: {value!r} is not allowed '
                              f'(allowed: {_allowed(p)})')
@@ -204,6 +252,12 @@ def declare_all(node: Node, vendor: Vendor) -> BusConfig:
     bus = {p.name: declare(node, p.name, p) for p in (*BUS_PARAMS, *bus_specs)}
     drive_names = declare(node, 'drives', P('drives', [''], 'names of the drives on this bus'))
     drive_names = [n for n in drive_names if n]
+    if not drive_names and not set(node._parameter_overrides) - set(IMPLICIT_PARAMS):
+        # The params file has no block for this node: its top-level key names another node.
+        raise ParameterError(
+            f'parameter drives: not set, and no parameter is given for node '
+            f'{node.get_fully_qualified_name()} (a params file configures the node named by its '
+            f'top-level key: {node.get_name()}: or /**:)')
     if not drive_names:
         raise ParameterError('parameter drives: no drive named (allowed: a list of one or more '
                              'drive names, each with its drives.<name>.* parameters)')
@@ -244,7 +298,7 @@ def _refuse_unknown(node: Node, drive_names: Iterable[str]) -> None:
     names = list(drive_names)
     unlisted = set()
     for name in node._parameter_overrides:
-        if name in declared or name in ('use_sim_time', 'start_type_description_service'):
+        if name in declared or name in IMPLICIT_PARAMS:
             continue
         parts = name.split('.')
         if len(parts) > 2 and parts[0] == 'drives' and parts[1] not in names:

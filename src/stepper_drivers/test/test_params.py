@@ -6,7 +6,7 @@ import pytest
 import rclpy
 
 from stepper_drivers.drive import ParamSpec, Vendor
-from stepper_drivers.params import ParameterError, declare_all
+from stepper_drivers.params import ParameterError, declare_all, non_ros_args
 
 VENDOR = Vendor(
     name='TEST', make_bus=None, make_drive=None,
@@ -73,6 +73,12 @@ def test_good_file_gives_config(tmp_path):
      r'parameter drive_typo: unknown parameter'),
     (('joint_name: j1', 'joint_name: j1\n      max_velocty: 3.0'),
      r'drives.axis1.max_velocty: unknown parameter'),
+    # rcl leaves an empty YAML list NOT_SET: declare_parameter returns None
+    (('port: 1502', 'port: []'),
+     r'parameter port: \[\] is not allowed \(allowed: an integer from 1 to 65535\)'),
+    (('drives: [axis1, axis2]', 'drives: []'), r'parameter drives: no drive named'),
+    (('drives: [axis1, axis2]', 'drives: ~'),
+     r"parameter drives: '~' is not a list of strings \(allowed: a list of strings\)"),
 ])
 def test_bad_value_is_one_line_naming_parameter_value_and_range(tmp_path, edit, message):
     with pytest.raises(ParameterError, match=message) as e:
@@ -90,3 +96,44 @@ def test_min_above_max_is_refused(tmp_path):
 def test_no_drive_is_refused(tmp_path):
     with pytest.raises(ParameterError, match='parameter drives: no drive named'):
         declare_from(tmp_path, 'n:\n  ros__parameters:\n    port: 1502\n')
+
+
+def test_a_params_file_for_another_node_says_so(tmp_path):
+    """The symptom of issue 10 item 1: rd4_node started with config/xplus_mt.yaml."""
+    with pytest.raises(ParameterError, match=r'parameter drives: not set, and no parameter is '
+                       r'given for node /n \(a params file configures the node named by its '
+                       r'top-level key: n: or /\*\*:\)'):
+        declare_from(tmp_path, GOOD.replace('n:', 'other_node:', 1))
+
+
+def test_non_ros_args_are_returned():
+    assert non_ros_args(['exe', 'extra', '--ros-args', '-p', 'port:=1']) == ['exe', 'extra']
+
+
+@pytest.mark.parametrize('text, message', [
+    (None, 'cannot be read (No such file or directory)'),
+    ('', 'cannot be read (Is a directory)'),
+    ('n:\n  ros__parameters:\n    drives: [axis1\n', 'not a ROS 2 params file (Error '),
+    ('n: 3\n', 'not a ROS 2 params file (Cannot have a value before ros__parameters at line 1)'),
+])
+def test_a_params_file_rcl_cannot_use_is_named(tmp_path, text, message):
+    f = tmp_path / 'p.yaml'
+    if text == '':
+        f.mkdir()
+    elif text is not None:
+        f.write_text(text)
+    with pytest.raises(ParameterError) as e:
+        non_ros_args(['exe', '--ros-args', '--params-file', str(f)])
+    assert str(e.value).startswith(f'params file {f}: {message}'), str(e.value)
+    assert ' at /' not in str(e.value) and '\n' not in str(e.value)   # no C source locations
+
+
+@pytest.mark.parametrize('args, message', [
+    (['-p', 'port'], "Couldn't parse parameter override rule: '-p port'"),
+    (['--params-file'], "Couldn't parse trailing --params-file flag"),
+    (['--no-such-flag'], "unknown ROS arguments ['--no-such-flag']"),
+])
+def test_a_ros_argument_rcl_refuses_is_named(args, message):
+    with pytest.raises(ParameterError) as e:
+        non_ros_args(['exe', '--ros-args', *args])
+    assert message in str(e.value) and ' at /' not in str(e.value), str(e.value)

@@ -14,8 +14,9 @@ where `build(node)` declares the simulator's own parameters on the node (helpers
      (stepper_drivers_msgs/srv/SetInput), which call the backend,
   4. prints `<node_name>: ready on <address>` on stdout (flushed; tests wait for this line),
   5. spins until SIGINT/SIGTERM, stops the backend, and returns exit code 0.
-A bad parameter (ValueError from `build`, or rclpy's range checks) prints one line naming it on
-stderr and returns 1. Simulators bind to 127.0.0.1 only.
+A bad parameter (ValueError from `build`, or rclpy's range checks) or a params file that cannot be
+read or parsed prints one line naming it on stderr and returns 2, as the driver nodes do; a wire
+server that cannot start (OSError: port in use) returns 1. Simulators bind to 127.0.0.1 only.
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from std_msgs.msg import Float64
+from stepper_drivers.params import ParameterError, non_ros_args
 from stepper_drivers_msgs.srv import InjectFault, SetInput
 
 logger = logging.getLogger(__name__)
@@ -69,6 +71,10 @@ def declare(node: Node, name: str, default: Any, description: str, *,
         value = node.declare_parameter(name, Parameter.Type.STRING_ARRAY, descriptor).value
         return list(value) if value is not None else []
     value = node.declare_parameter(name, default, descriptor).value
+    if value is None:           # rcl leaves an empty YAML list ([]) NOT_SET
+        if isinstance(default, list):
+            return []
+        raise ValueError(f'parameter {name}: [] is not allowed (default: {default!r})')
     if is_float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ValueError(f'parameter {name}: expected a number, got {value!r}')
@@ -143,6 +149,11 @@ def run_sim(node_name: str, build: Callable[[Node], SimBackend],
     """Run one simulator node until SIGINT/SIGTERM; return the process exit code."""
     logging.basicConfig(level=logging.INFO, format=f'[{node_name}] %(levelname)s %(name)s: '
                                                    '%(message)s')
+    try:
+        non_ros_args(sys.argv if args is None else args)  # a missing or broken params file
+    except ParameterError as exc:
+        print(f'{node_name}: {exc}', file=sys.stderr, flush=True)
+        return 2
     rclpy.init(args=args)
     node: Node | None = None
     backend: SimBackend | None = None
@@ -159,7 +170,10 @@ def run_sim(node_name: str, build: Callable[[Node], SimBackend],
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except (ValueError, OSError, ParameterException) as exc:
+    except (ValueError, ParameterException) as exc:
+        print(f'{node_name}: {exc}', file=sys.stderr, flush=True)
+        rc = 2
+    except OSError as exc:
         print(f'{node_name}: {exc}', file=sys.stderr, flush=True)
         rc = 1
     finally:
