@@ -5,6 +5,8 @@ ROS message packages are imported where used, so this module imports without the
 """
 
 import signal
+import threading
+import time
 
 from stepper_drivers.tools.client import RosClient  # noqa: F401
 from stepper_drivers.tools.processes import (CONFIG, INSTALL, ROOT, Proc, executable,  # noqa: F401
@@ -168,3 +170,48 @@ def bad_parameter_output(procs, tmp_path, vendor, old, new, timeout_s=20.0) -> l
                             '--params-file', str(f)])
     assert p.proc.wait(timeout=timeout_s) == 2
     return p.output().strip().splitlines()
+
+
+class Track:
+    """A simulator's true position (its ~/<drive>/true_position_steps at 20 Hz) with the time
+    each sample arrived: when did the real axis stop?"""
+
+    SAMPLE_S = 0.05
+
+    def __init__(self, ros, topic):
+        from std_msgs.msg import Float64
+        self.samples: list[tuple[float, float]] = []
+        self.lock = threading.Lock()
+        self.sub = ros.node.create_subscription(Float64, topic, self._cb, 50)
+
+    def _cb(self, msg):
+        with self.lock:
+            self.samples.append((time.monotonic(), msg.data))
+
+    def still_since(self, tolerance_steps=0.5):
+        """Arrival time of the first sample of the current standstill (None while moving)."""
+        with self.lock:
+            samples = list(self.samples)
+        if len(samples) < 2 or abs(samples[-1][1] - samples[-2][1]) > tolerance_steps:
+            return None
+        t = samples[-1][0]
+        for (t0, x0), (_t1, x1) in zip(reversed(samples[:-1]), reversed(samples)):
+            if abs(x1 - x0) > tolerance_steps:
+                break
+            t = t0
+        return t
+
+    def wait_still(self, hold_s, timeout_s, what):
+        """Wait for a standstill that lasted hold_s; return when it began."""
+        def check():
+            t = self.still_since()
+            return t if t is not None and time.monotonic() - t >= hold_s else None
+        return wait_for(check, timeout_s, what)
+
+
+def watchdog_bound_s(timeout_s, rate_hz, velocity, deceleration, transaction_s):
+    """When a velocity run must have stopped after its last command (issue 9): the watchdog's
+    command_timeout_s, two poll periods, the stop ramp and the one transaction in flight, plus
+    one true-position sample (the standstill is seen at the first unchanged sample)."""
+    return (timeout_s + 2.0 / rate_hz + abs(velocity) / deceleration + transaction_s
+            + Track.SAMPLE_S)

@@ -13,7 +13,8 @@ import time
 import can
 from diagnostic_msgs.msg import DiagnosticStatus
 import pytest
-from rosharness import DriveBench, Procs, RosClient, bad_parameter_output, wait_for
+from rosharness import (DriveBench, Procs, RosClient, Track, bad_parameter_output, wait_for,
+                        watchdog_bound_s)
 from std_srvs.srv import SetBool
 from stepper_drivers.protocol.socketcand_broker import SocketcandBroker
 from stepper_drivers_msgs.srv import ReadRegister, WriteRegister
@@ -123,12 +124,19 @@ def test_enable_does_not_move_and_a_move_reaches_the_target(rig):
 
 def test_jog_runs_in_aec_velocity_mode_and_the_watchdog_stops_it(rig):
     rig.enable('axis1')
+    track = Track(rig.ros, rig.true_topic('axis1'))
     rig.command('axis1', 'velocity_command', 4.0)
+    t_cmd = time.monotonic()
     st = rig.status('axis1', lambda m: m.moving and m.velocity > 3.5, what='axis1 jogging')
     assert st.mode == 'AEC VELOCITY (JOG)'
-    st = rig.status('axis1', lambda m: not m.moving, 5.0, 'watchdog stop')
+    # command_timeout_s 0.5, 50 Hz polls, deceleration 200 rad/s^2 (config/vector_step.yaml),
+    # one SDO/PDO exchange in flight
+    bound_s = watchdog_bound_s(0.5, 50.0, 4.0, 200.0, 0.02)
+    still_at = track.wait_still(0.3, bound_s + 3.0, 'axis1 stopped')
+    assert still_at - t_cmd <= bound_s, (still_at - t_cmd, bound_s)
+    st = rig.status('axis1', lambda m: not m.moving, 1.0, 'watchdog stop')
     assert st.enabled and st.velocity == 0.0
-    rig.node.wait_line('velocity watchdog', 5.0)
+    rig.node.wait_line('velocity watchdog', 1.0)
     rig.idle('axis1')
 
 

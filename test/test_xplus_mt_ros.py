@@ -5,10 +5,12 @@ true position topic and fault-injection service play the part of the real world.
 """
 
 import math
+import time
 
 from diagnostic_msgs.msg import DiagnosticStatus
 import pytest
-from rosharness import DriveBench, bad_parameter_output, free_port, wait_for
+from rosharness import (DriveBench, Track, bad_parameter_output, free_port, wait_for,
+                        watchdog_bound_s)
 from stepper_drivers_msgs.srv import ReadRegister, WriteRegister
 
 NODE = '/xplus_mt_node'
@@ -69,11 +71,18 @@ def test_move_to_target_within_tolerance(bench):
 
 def test_velocity_stops_by_watchdog(bench):
     bench.enable('axis1')
+    track = Track(bench.ros, bench.true_topic('axis1'))
     bench.command('axis1', 'velocity_command', 5.0)
+    t_cmd = time.monotonic()
     bench.status('axis1', lambda m: m.moving and m.velocity > 4.0, what='axis1 running')
-    st = bench.status('axis1', lambda m: not m.moving, timeout_s=5.0, what='watchdog stop')
+    # command_timeout_s 0.5, 50 Hz polls, deceleration 200 rad/s^2 (config/xplus_mt.yaml),
+    # one Modbus TCP transaction in flight
+    bound_s = watchdog_bound_s(0.5, 50.0, 5.0, 200.0, 0.01)
+    still_at = track.wait_still(0.3, bound_s + 3.0, 'axis1 stopped')
+    assert still_at - t_cmd <= bound_s, (still_at - t_cmd, bound_s)
+    st = bench.status('axis1', lambda m: not m.moving, timeout_s=1.0, what='watchdog stop')
     assert st.enabled and abs(st.velocity) < 1e-6
-    bench.node.wait_line('velocity watchdog', 5.0)
+    bench.node.wait_line('velocity watchdog', 1.0)
 
 
 def test_home_runs_while_joint_states_keep_flowing(bench):
