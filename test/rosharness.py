@@ -46,6 +46,7 @@ class DriveBench:
     first_sim_args: tuple[str, ...] = ()      # simulator parameters of the first start only
     keep_status = False                       # keep every DriveStatus in ros.history
     connect_timeout_s = 30.0                  # process starts take seconds on a busy machine
+    wait_connected = True                     # the constructor returns once all are connected
 
     def __init__(self, procs, ros, node_args=()):
         from diagnostic_msgs.msg import DiagnosticArray
@@ -65,8 +66,9 @@ class DriveBench:
         for d in self.drives:
             ros.subscribe(DriveStatus, f'{self.node_ns}/{d}/status', keep=self.keep_status)
             ros.subscribe(Float64, self.true_topic(d))
-        for d in self.drives:
-            self.status(d, lambda m: m.connected, self.connect_timeout_s, f'{d} connected')
+        if self.wait_connected:
+            for d in self.drives:
+                self.status(d, lambda m: m.connected, self.connect_timeout_s, f'{d} connected')
 
     # ------------------------------------------------------------------ vendor specific
     def link_args(self) -> list[str]:

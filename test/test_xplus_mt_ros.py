@@ -11,6 +11,7 @@ from diagnostic_msgs.msg import DiagnosticStatus
 import pytest
 from rosharness import (DriveBench, Track, bad_parameter_output, free_port, wait_for,
                         watchdog_bound_s)
+from std_srvs.srv import SetBool
 from stepper_drivers_msgs.srv import ReadRegister, WriteRegister
 
 NODE = '/xplus_mt_node'
@@ -337,3 +338,39 @@ def test_homing_that_does_not_finish_times_out_and_stops(bench):
     bench.enable('axis2')
     r = bench.call('axis2', 'home')
     assert not r.success and 'INPUT_CONFIG (1088)' in r.message, r.message
+
+
+def test_joint_command_with_arrays_that_do_not_match_the_names_is_refused(bench):
+    from sensor_msgs.msg import JointState
+    bench.enable('axis1')
+    bench.enable('axis2')
+    before = (bench.fresh_true_steps('axis1'), bench.fresh_true_steps('axis2'))
+    # two names, one position: executed index by index, joint2's value would go to joint1
+    bench.ros.publish(JointState, '/joint_command',
+                      JointState(name=['xplus_joint2', 'xplus_joint1'], position=[1.0]))
+    for d in ('axis1', 'axis2'):
+        st = bench.status(d, lambda m: '1 position values for 2 names' in m.last_refusal,
+                          what=f'{d} refusal')
+        assert st.commands_refused >= 1 and not st.moving
+    # the next message is a good one: had the bad one moved anything, this one shows it
+    bench.ros.publish(JointState, '/joint_command',
+                      JointState(name=['xplus_joint1'], position=[0.5]))
+    bench.status('axis1', lambda m: not m.moving and abs(m.position - 0.5) < 1e-3,
+                 what='the good command done')
+    assert bench.fresh_true_steps('axis2') == before[1]
+
+
+def test_two_drives_answering_with_one_identity_are_not_driven(procs, ros, tmp_path):
+    """Both unit ids reach one drive (axis2 configured with axis1's unit id): enabling one
+    would enable the other, so neither is driven and the status names the parameters."""
+    class Unconnected(Bench):
+        wait_connected = False
+    bench = Unconnected(procs, ros, tmp_path, node_args=('-p', 'drives.axis2.unit_id:=1'))
+    for d in ('axis1', 'axis2'):
+        st = bench.status(d, lambda m: m.not_driven, timeout_s=30.0, what=f'{d} not driven')
+        assert 'one identity' in st.not_driven and 'drives.<name>.unit_id' in st.not_driven
+        assert not st.connected and st.state == 'DISCONNECTED'
+    r = bench.call('axis1', 'enable', SetBool.Request(data=True), SetBool)
+    assert not r.success and 'not driven' in r.message, r.message
+    assert bench.fresh_true_steps('axis1') == 0
+    bench.node.wait_line('answer with one identity', 1.0)

@@ -437,10 +437,18 @@ class DriveNode(Node):
         for field in ('position', 'velocity'):
             values = getattr(msg, field)
             if values and len(values) != n:
-                self.log.warning(
-                    f'joint_command refused: {len(values)} {field} values for {n} names '
-                    f'{list(msg.name)} (each non-empty array needs one value per name)',
-                    throttle_duration_sec=5.0)
+                # executed index by index it would send one joint's value to another
+                why = (f'joint_command: {len(values)} {field} values for {n} names '
+                       f'{list(msg.name)} (a non-empty array needs one value per name); '
+                       'the whole message is refused')
+                mine = [self.by_joint[j] for j in msg.name if j in self.by_joint]
+                for h in mine:
+                    try:
+                        self.refuse(h, why)
+                    except CommandRefused:
+                        pass
+                if not mine:
+                    self.log.warning(why, throttle_duration_sec=5.0)
                 return
         for i, joint in enumerate(msg.name):
             h = self.by_joint.get(joint)
