@@ -9,8 +9,9 @@ import time
 
 from diagnostic_msgs.msg import DiagnosticStatus
 import pytest
-from rosharness import (DriveBench, Track, bad_parameter_output, free_port, wait_for,
-                        watchdog_bound_s)
+from rosharness import (CONFIG, DriveBench, Track, bad_parameter_output, executable, free_port,
+                        wait_for, watchdog_bound_s)
+from std_msgs.msg import Float64
 from std_srvs.srv import SetBool
 from stepper_drivers_msgs.srv import ReadRegister, WriteRegister
 
@@ -374,3 +375,54 @@ def test_two_drives_answering_with_one_identity_are_not_driven(procs, ros, tmp_p
     assert not r.success and 'not driven' in r.message, r.message
     assert bench.fresh_true_steps('axis1') == 0
     bench.node.wait_line('answer with one identity', 1.0)
+
+
+def test_one_node_serves_drives_on_several_hosts(procs, ros, tmp_path):
+    """A real X-PLUS MT is its own Modbus TCP server: one node, one connection per drive host
+    (drives.<name>.port here; .host the same), each with its own owner thread, so a host that
+    drops out does not stall the other."""
+    from diagnostic_msgs.msg import DiagnosticArray
+    from stepper_drivers_msgs.msg import DriveStatus
+
+    ports = (free_port(), free_port())
+    # the simulator's params for any node name: two simulators, two names
+    sim_yaml = tmp_path / 'sim.yaml'
+    sim_yaml.write_text((CONFIG / 'xplus_mt_sim.yaml').read_text().replace(
+        'xplus_mt_sim:', "'/**':", 1))
+    sims = []
+    for i, port in enumerate(ports):
+        storage = tmp_path / f'eeprom{i}'
+        storage.mkdir()
+        sims.append(procs.start(f'sim{i}', [
+            executable('stepper_sim', 'xplus_mt_sim'), '--ros-args', '--params-file',
+            str(sim_yaml), '-r', f'__node:=xplus_mt_sim{i}',
+            '-p', f'port:={port}', '-p', f'storage_dir:={storage}']))
+    for s in sims:
+        s.wait_line('ready', 30.0)
+    # axis1 on the first host's unit 1, axis2 on the second host's unit 2
+    node = procs.start('node', [
+        executable('stepper_drivers', 'xplus_mt_node'), '--ros-args', '--params-file',
+        str(CONFIG / 'xplus_mt.yaml'), '-p', f'port:={ports[0]}', '-p',
+        f'drives.axis2.port:={ports[1]}', '-p', 'reconnect_period_s:=0.2'])
+    ros.subscribe(DiagnosticArray, '/diagnostics')
+    for d in ('axis1', 'axis2'):
+        ros.subscribe(DriveStatus, f'{NODE}/{d}/status')
+        ros.wait_msg(f'{NODE}/{d}/status', lambda m: m.connected, 30.0, f'{d} connected')
+    ros.subscribe(Float64, '/xplus_mt_sim1/axis2/true_position_steps')
+    diag = ros.wait_msg('/diagnostics', lambda a: sum(
+        s.name.startswith('xplus_mt_node: link') for s in a.status) == 2, what='two links')
+    links = sorted(s.hardware_id for s in diag.status if s.name.startswith('xplus_mt_node: link'))
+    assert links == sorted(f'modbus tcp 127.0.0.1:{p}' for p in ports)
+    r = ros.call(SetBool, f'{NODE}/axis2/enable', SetBool.Request(data=True))
+    assert r.success, r.message
+    ros.publish(Float64, f'{NODE}/axis2/position_command', Float64(data=1.0))
+    ros.wait_msg('/xplus_mt_sim1/axis2/true_position_steps',
+                 lambda m: abs(m.data - 12800 / (2 * math.pi)) < 1, what='second host moved')
+    # the first host goes away: only axis1 is lost, axis2 keeps being polled
+    sims[0].stop()
+    ros.wait_msg(f'{NODE}/axis1/status', lambda m: m.state == 'DISCONNECTED', 10.0)
+    a = ros.wait_msg(f'{NODE}/axis2/status', lambda m: m.connected)
+    b = ros.wait_msg(f'{NODE}/axis2/status', lambda m: m.header.stamp.sec > a.header.stamp.sec
+                     + 1, 5.0, 'axis2 status going on')
+    assert b.connected and b.link_reconnects == 0
+    assert node.stop() == 0
