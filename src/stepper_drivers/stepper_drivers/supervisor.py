@@ -74,6 +74,7 @@ class Job:
     disarms: bool = False       # confirmed success disarms the velocity watchdog
     motion: bool = True         # a stop of the drive drops this job, or cuts it short
     enqueued_t: float = 0.0
+    arm_seq: int = 0            # the drive's watchdog arming count when this job was submitted
 
     def preempted_by(self, urgent: 'Job') -> bool:
         """A stop drops motion; a disable (an URGENT job that is not motion itself) drops
@@ -107,6 +108,7 @@ class Slot:
         self.next_connect_t = 0.0
         self.backoff_s = reconnect_period_s
         self.velocity_deadline: float | None = None
+        self.arm_seq = 0             # velocity commands accepted so far (arm_watchdog calls)
         self.watchdog_retry_t = 0.0
         self.poll_waiters: list[tuple[float, Callable[[bool], None]]] = []
 
@@ -159,6 +161,7 @@ class BusSupervisor:
         fut: concurrent.futures.Future = concurrent.futures.Future()
         job = Job(drive, kind, fn, label, fut, topic, disarms, motion, self.clock())
         with self._cv:
+            job.arm_seq = self.slots[drive].arm_seq
             if self._stopping:
                 fut.set_exception(Cancelled(f'{label}: the node is shutting down'))
                 return fut
@@ -179,8 +182,9 @@ class BusSupervisor:
     def arm_watchdog(self, drive: str) -> None:
         """A velocity command was accepted: the drive must hear from us within the timeout."""
         with self._cv:
-            self.slots[drive].velocity_deadline = \
-                self.clock() + self.settings['command_timeout_s']
+            slot = self.slots[drive]
+            slot.velocity_deadline = self.clock() + self.settings['command_timeout_s']
+            slot.arm_seq += 1
             self._cv.notify()
 
     def watchdog_armed(self, drive: str) -> bool:
@@ -359,9 +363,16 @@ class BusSupervisor:
         if job.kind == CONNECT:
             self._connected(slot, *result)
             return
-        if job.disarms:
-            slot.velocity_deadline = None
+        self._disarm(slot, job)
         job.future.set_result(result)
+
+    def _disarm(self, slot: Slot, job: Job) -> None:
+        """A confirmed stop/position/homing disarms the watchdog, unless a velocity command
+        was accepted after it was submitted (that one runs next and must stay watched)."""
+        if job.disarms:
+            with self._cv:
+                if slot.arm_seq == job.arm_seq:
+                    slot.velocity_deadline = None
 
     def _finish(self, slot: Slot) -> None:
         slot.active, slot.active_steps = None, None
@@ -404,8 +415,7 @@ class BusSupervisor:
         except Exception as exc:  # noqa: BLE001
             self._failed(slot, job, exc)
             return
-        if job.disarms:
-            slot.velocity_deadline = None
+        self._disarm(slot, job)
         job.future.set_result(result)
 
     def _cut_short(self, slot: Slot, why: str) -> None:
@@ -425,7 +435,8 @@ class BusSupervisor:
                       f'{timeout_s:g} s (command_timeout_s), stopping')
         slot.watchdog_retry_t = self.clock() + WATCHDOG_RETRY_S
         job = Job(slot.name, URGENT, slot.drive.stop, 'watchdog stop',
-                  concurrent.futures.Future(), disarms=True, enqueued_t=self.clock())
+                  concurrent.futures.Future(), disarms=True, enqueued_t=self.clock(),
+                  arm_seq=slot.arm_seq)
         job.future.add_done_callback(lambda f: f.exception() and self.on_event(
             'error', slot.name, f'velocity watchdog: stop failed: {f.exception()}'))
         self._run_urgent(job)

@@ -394,3 +394,25 @@ def test_shutdown_stops_every_drive_then_disables_those_named(bus):
     assert not line.is_open
     with pytest.raises(Cancelled):
         result(sup.submit('axis1', COMMAND, d['axis1'].fault_reset, 'late'))
+
+
+def test_a_confirmation_does_not_disarm_a_velocity_accepted_after_it(bus):
+    """position p queued, then velocity v accepted (armed) and queued behind it: p confirmed
+    must not disarm the watchdog that v, running next, needs."""
+    timeout_s = 1.0         # longer than the save the commands wait behind (0.5 s)
+    sup, line, d = bus(command_timeout_s=timeout_s)
+    drive = d['axis1']
+    busy = sup.submit('axis1', MAINTENANCE, drive.save_params, 'save', motion=False)
+    wait_for(lambda: line.calls('axis1', 'save step'), 1.0, 'save started')
+    pos = sup.submit('axis1', STREAM, lambda: drive.move_to(1, None), 'p1', topic='position',
+                     disarms=True)
+    sup.arm_watchdog('axis1')
+    vel = sup.submit('axis1', STREAM, lambda: drive.set_velocity(5.0, None), 'v5',
+                     topic='velocity')
+    result(busy)
+    result(pos)
+    result(vel)
+    t_vel = line.calls('axis1', 'set_velocity')[-1][0]
+    assert sup.watchdog_armed('axis1')
+    wait_for(lambda: _stop_time(line, 'axis1', t_vel), timeout_s + 1.0, 'watchdog stop')
+    wait_for(lambda: drive.velocity == 0.0, 5 * TX_S, 'the stop done')
