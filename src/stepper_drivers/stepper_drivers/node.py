@@ -626,7 +626,8 @@ class DriveNode(Node):
             settled, last = 0, None
             await self._next_poll(h)
             while True:
-                if not await self._next_poll(h, 1.0) and not h.connected:
+                fresh = await self._next_poll(h, 1.0)
+                if not fresh and not h.connected:
                     raise DriveError('move aborted: link lost')
                 s = h.state
                 if s.fault:
@@ -640,8 +641,9 @@ class DriveNode(Node):
                 # position (one snapshot may mix an old position with a new status)
                 still = not s.moving and (s.target_reached or abs(
                     s.position_steps - steps) <= TARGET_TOLERANCE_STEPS)
-                settled = settled + 1 if still and last == s.position_steps else int(still)
-                last = s.position_steps
+                if fresh:     # a snapshot counts once
+                    settled = settled + 1 if still and last == s.position_steps else int(still)
+                    last = s.position_steps
                 if settled >= SETTLED_POLLS:
                     if abs(s.position_steps - steps) <= TARGET_TOLERANCE_STEPS:
                         break
