@@ -28,6 +28,7 @@ import sys
 import tempfile
 import time
 
+from stepper_drivers.drive import complete
 from stepper_drivers.protocol import modbus_rtu as rtu
 from stepper_drivers.vendors import rd4
 from stepper_drivers.vendors import rd4_map as rm
@@ -82,17 +83,17 @@ def bench_driver(units: int, seconds: float, line_timing: bool = True) -> dict:
         bus.open()
         drives = [rd4.make_drive(bus, f'axis{i + 1}', {'node_id': i + 1}) for i in range(units)]
         for d in drives:
-            d.connect()
+            complete(d.connect())
         for _ in range(3):
             for d in drives:
-                d.read_state()
+                complete(d.read_state())
         cycle_s = []
         errors_before = bus.errors
         end = time.monotonic() + seconds
         while time.monotonic() < end:
             t0 = time.monotonic()
             for d in drives:
-                d.read_state()
+                complete(d.read_state())
             cycle_s.append(time.monotonic() - t0)
         return {'cycles_s': len(cycle_s) / sum(cycle_s), 'p99_ms': 1000 * sorted(
             cycle_s)[int(0.99 * (len(cycle_s) - 1))], 'mean_ms': 1000 * statistics.mean(cycle_s),

@@ -23,6 +23,7 @@ import logging
 import math
 import os
 import pathlib
+import random
 import sys
 import termios
 import time
@@ -110,6 +111,10 @@ class Rd4Unit:
         self.following_error = 0
         self.temperature_c = TEMPERATURE_C
         self.saves = 0
+        # Another device answering at this node ID (issue 9): read replies carry its words,
+        # with a valid CRC; writes still reach this unit. None = off, 0 = until clear_fault.
+        self.garbage_reads: int | None = None
+        self._garbage = random.Random(0)
         self._validate()
         if self.wrong_parameters:
             self.alarms |= rm.ALARM_MACHINE_DATA_NOT_VALID
@@ -324,22 +329,33 @@ class Rd4Unit:
         if kind == 'clear_fault':
             self.causes = 0
             self.temperature_c = TEMPERATURE_C
+            self.garbage_reads = None
             return 'causes cleared: an Alarm reset (CW bit 3 edge) can now clear the alarms'
+        if kind == 'garbage_reads':
+            self.garbage_reads = max(0, int(code))
+            self._garbage.seed(int(value))
+            return (f'read replies carry pseudo-random words (seed {int(value)}, valid CRC) for '
+                    + (f'the next {code} reads' if code > 0 else 'every read until clear_fault'))
         if kind == 'temperature':
             self.temperature_c = int(value)
             return f'Temperature value [0x08] = {self.temperature_c} degC'
         raise ValueError(f'unknown fault kind {kind!r} for an RD4 unit (allowed: drive_fault, '
-                         'clear_fault, temperature; link: ' + ', '.join(LINK_FAULTS) + ')')
+                         'clear_fault, temperature, garbage_reads; link: '
+                         + ', '.join(LINK_FAULTS) + ')')
 
     # ------------------------------------------------------------------------ requests
     def handle(self, request: rtu.Request, frame: bytes) -> bytes:
         fc = request.function_code
-        if fc == rtu.FC_READ_HOLDING_REGISTERS:
-            return rtu.response_for(request, frame,
-                                    self.read_holding(request.address, request.count))
-        if fc == rtu.FC_READ_INPUT_REGISTERS:
-            return rtu.response_for(request, frame,
-                                    self.read_input(request.address, request.count))
+        if fc in (rtu.FC_READ_HOLDING_REGISTERS, rtu.FC_READ_INPUT_REGISTERS):
+            read = self.read_holding if fc == rtu.FC_READ_HOLDING_REGISTERS else self.read_input
+            words = read(request.address, request.count)
+            if self.garbage_reads is not None:
+                words = [self._garbage.getrandbits(16) for _ in words]
+                if self.garbage_reads == 1:
+                    self.garbage_reads = None
+                elif self.garbage_reads > 1:
+                    self.garbage_reads -= 1
+            return rtu.response_for(request, frame, words)
         self.write(request.address, request.values, fc)
         return rtu.response_for(request, frame)
 

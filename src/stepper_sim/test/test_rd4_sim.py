@@ -144,6 +144,35 @@ def test_silence_for_bad_crc_broadcast_other_node_and_garbage(line, client):
     assert ln.counters['broadcast'] == 1
 
 
+def test_garbage_reads_have_a_valid_crc_and_writes_still_act(line, client):
+    """Fault 'garbage_reads' (issue 9): another device's words in the next `code` read replies,
+    CRC valid (seeded, so reproducible); the writes still reach the unit."""
+    import random
+    from stepper_drivers.protocol.modbus_rtu import add_crc
+    ln = line()
+    c = client(ln)
+    alarms = h('01 04 00 00 00 01 31 CA')                     # really 0x0040 (power-up)
+    with ln.lock:
+        assert 'next 2 reads' in ln.unit('axis1').inject('garbage_reads', 2, 5)
+    expected = random.Random(5)
+    for _ in range(2):
+        word = expected.getrandbits(16)
+        assert c.ask(alarms, 7) == add_crc(h('01 04 02') + word.to_bytes(2, 'big'))
+    assert c.ask(alarms, 7) == add_crc(h('01 04 02 00 40'))   # the budget is used up
+    assert c.ask(h('01 06 00 2A 00 84 A8 61'), 8) == h('01 06 00 2A 00 84 A8 61')
+    control_word = h('01 03 00 2A 00 01 A5 C2')
+    with ln.lock:
+        assert ln.unit('axis1').cw == 0x0084                  # the write acted
+        ln.unit('axis1').inject('garbage_reads', 0, 1)        # 0: until clear_fault
+    expected.seed(1)
+    for _ in range(3):
+        word = expected.getrandbits(16)
+        assert c.ask(control_word, 7) == add_crc(h('01 03 02') + word.to_bytes(2, 'big'))
+    with ln.lock:
+        ln.unit('axis1').inject('clear_fault', 0, 0)
+    assert c.ask(control_word, 7) == add_crc(h('01 03 02 00 84'))
+
+
 @pytest.mark.parametrize('request_hex, response_hex', [
     ('01 01 00 00 00 01 FD CA', '01 81 01 81 90'),       # FC01: not implemented
     ('01 03 00 2D 00 01 14 03', '01 83 02 C0 F1'),       # beyond the holding map (0x2C)

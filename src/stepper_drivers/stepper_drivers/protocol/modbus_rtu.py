@@ -322,7 +322,9 @@ class ModbusRtuBus(drive.Bus):
     Every request waits for t3.5 of silence since the last byte on the line, is written whole,
     and its reply is read by length. A timeout, a CRC error or a reply that does not match the
     request is counted and the request sent again (`retries` times); then LinkError. An exception
-    reply is a DriveError (the slave answered: the link is fine), never retried.
+    reply is a DriveError (the slave answered: the link is fine), never retried. Any failure of
+    the port itself (OSError, termios.error, a port closed under pyserial) is a one-line
+    LinkError at once.
     """
 
     def __init__(self, port: str, baudrate: int = 9600, parity: str = 'E', stopbits: int = 1,
@@ -439,6 +441,10 @@ class ModbusRtuBus(drive.Bus):
                 except OSError as exc:   # serial.SerialException is an OSError (port gone)
                     self.errors += 1
                     raise drive.LinkError(f'{what}: {exc}') from None
+                except Exception as exc:  # noqa: BLE001 - termios.error, or pyserial's
+                    # TypeError on a port closed under it: the transport failed, one line.
+                    self.errors += 1
+                    raise drive.LinkError(f'{what}: {type(exc).__name__}: {exc}') from None
                 logger.debug('%s: %s', what, problems[-1])
             raise drive.LinkError(f'{what}: ' + '; '.join(problems))
 

@@ -167,6 +167,8 @@ CW_JOG = CW_JOG_PLUS | CW_JOG_MINUS
 CW_READY = CW_STOP | CW_EMERGENCY      # §9.3 Example 2: 0x0084 "ready to execute the motion"
 CW_EDGE_BITS = (CW_ALARM_RESET | CW_SAVE_PARAMETERS | CW_LOAD_DEFAULT_PARAMETERS
                 | CW_PERFORM_COUNTING_PRESET)
+CW_NOT_USED = 0x0020               # bit 5 "Not used"
+EXTRA_COMMANDS_DEFINED = 0x0001    # Extra commands register [0x29]: bit 0 Absolute reading only
 
 CONTROL_WORD_BITS: tuple[tuple[int, str], ...] = (
     (CW_JOG_PLUS, 'Jog +'), (CW_JOG_MINUS, 'Jog -'), (CW_STOP, 'Stop'),
@@ -202,6 +204,8 @@ STATUS_WORD_BITS: tuple[tuple[int, str], ...] = (
     (SW_IN_1, 'IN 1'), (SW_IN_2, 'IN 2'), (SW_IN_3, 'IN 3'),
 )
 INPUT_BITS = {'in1': SW_IN_1, 'in2': SW_IN_2, 'in3': SW_IN_3}
+# Bits 1 and 9-11 are "Not used" (§8.1.2): a reply with one of them set is not an RD4's.
+STATUS_WORD_DEFINED = sum(mask for mask, _name in STATUS_WORD_BITS)      # 0xF1FD
 
 # -------------------------------------------------------------- Alarms register [0x00] (§8.1.2)
 ALARM_MACHINE_DATA_NOT_VALID = 0x0001
@@ -252,6 +256,8 @@ ALARMS: tuple[Alarm, ...] = (
           'Watch dog enabled and no message received within 1 second: safety stop'),
 )
 ALARM_BY_MASK: Mapping[int, Alarm] = {a.mask: a for a in ALARMS}
+# Bits 2, 9 and 12-15 are "Not used" (§8.1.2): a reply with one of them set is not an RD4's.
+ALARMS_DEFINED = sum(a.mask for a in ALARMS)                                # 0x0DFB
 NOT_RESETTABLE = ALARM_FLASH_MEMORY_ERROR | ALARM_AXIS_NOT_SYNCHRONIZED
 
 # Wrong parameters list [0x09-0x0A] bits (§8.1.2 table). Read as 0-based bit positions of the
@@ -366,7 +372,7 @@ def defaults(model: Model) -> dict[int, int]:
 # -------------------------------------------------------------------------------- texts
 def alarm_names(alarms: int) -> list[str]:
     names = [a.name for a in ALARMS if alarms & a.mask]
-    unknown = alarms & ~sum(a.mask for a in ALARMS)
+    unknown = alarms & ~ALARMS_DEFINED
     if unknown:
         names.append(f'unknown alarm bits 0x{unknown:04X}')
     return names
@@ -392,7 +398,7 @@ def describe_alarms(alarms: int, wrong_parameters: int | None = None) -> str:
             text += (f'; wrong parameters (0x{wrong_parameters:08X}): '
                      + (', '.join(wrong_parameter_titles(wrong_parameters)) or 'none listed'))
         parts.append(text)
-    unknown = alarms & ~sum(a.mask for a in ALARMS)
+    unknown = alarms & ~ALARMS_DEFINED
     if unknown:
         parts.append(f'unknown alarm bits 0x{unknown:04X}')
     return '; '.join(parts)
@@ -410,6 +416,14 @@ def find_register(text: str) -> Register | None:
     """A register by name ('CONTROL_WORD', 'control word') or None."""
     key = text.strip().upper().replace(' ', '_').replace('-', '_')
     return HR.get(key) or IR.get(key)
+
+
+# HW Version [0x0F] fields (§8.1.2): what an RD4 with the Modbus interface reads.
+HW_MODEL_SHIFT = 12                # bits 12-15 ROTADRIVE model: 00 = RD4
+HW_INTERFACE_SHIFT = 8             # bits 8-11 interface: 00 = Modbus
+HW_NOT_USED = 0x0070               # bits 4-6 "not used"
+HW_MODEL_RD4 = 0
+HW_INTERFACE_MODBUS = 0
 
 
 def describe_hw_version(value: int) -> str:
