@@ -261,10 +261,11 @@ class BusSupervisor:
                     and now >= slot.velocity_deadline and now >= slot.watchdog_retry_t:
                 self._watchdog_stop(slot)
                 return 0.0
-        overdue = [s for s in self.slots.values() if s.connected and s.active is None
-                   and now >= s.next_poll_t + self._period_s()]
-        if overdue and self._jobs_since_poll >= MAX_JOBS_BEFORE_OVERDUE_POLL:
-            self._poll_step(overdue[0], now)
+        due = sorted((s for s in self.slots.values() if s.connected and s.active is None
+                      and now >= s.next_poll_t), key=lambda s: s.next_poll_t)
+        if due and now >= due[0].next_poll_t + self._period_s() \
+                and self._jobs_since_poll >= MAX_JOBS_BEFORE_OVERDUE_POLL:
+            self._poll_step(due[0], now)
             return 0.0
         for slot in self.slots.values():          # the next step of a running operation
             if slot.active is not None and slot.active_steps is not None \
@@ -280,15 +281,14 @@ class BusSupervisor:
             if slot.poll_steps is not None and now >= slot.poll_wake_t:
                 self._poll_step(slot, now)
                 return 0.0
-        for slot in self.slots.values():
-            if slot.connected and slot.active is None and now >= slot.next_poll_t:
-                self._poll_step(slot, now)
-                return 0.0
-        for slot in self.slots.values():
+        for slot in self.slots.values():   # before due polls: they may be due all the time
             if not slot.connected and not slot.not_driven and slot.active is None \
                     and now >= slot.next_connect_t:
                 self._connect(slot)
                 return 0.0
+        if due:      # the longest due first: when polls overrun, every drive gets its turn
+            self._poll_step(due[0], now)
+            return 0.0
         if not any(s.connected for s in self.slots.values()) \
                 and now >= self._last_cycle_t + self._period_s():
             self._cycle()     # the DISCONNECTED status goes on at the poll rate

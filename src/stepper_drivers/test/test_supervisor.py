@@ -416,3 +416,16 @@ def test_a_confirmation_does_not_disarm_a_velocity_accepted_after_it(bus):
     assert sup.watchdog_armed('axis1')
     wait_for(lambda: _stop_time(line, 'axis1', t_vel), timeout_s + 1.0, 'watchdog stop')
     wait_for(lambda: drive.velocity == 0.0, 5 * TX_S, 'the stop done')
+
+
+def test_when_polls_overrun_every_drive_gets_its_turn(bus):
+    """Three drives whose polls do not fit the period (3 x 10 ms per 10 ms): each is polled
+    in turn, none starves, and one cycle goes out per round."""
+    sup, line, d = bus(n_drives=3, publish_rate_hz=100.0)
+    start = {n: s.polls for n, s in sup.slots.items()}
+    cycles0 = sup.cycles
+    wait_for(lambda: min(s.polls - start[n] for n, s in sup.slots.items()) >= 20, 5.0,
+             'twenty polls of every drive')
+    counts = [s.polls - start[n] for n, s in sup.slots.items()]
+    assert max(counts) - min(counts) <= 2, counts
+    assert sup.cycles - cycles0 >= 19
