@@ -22,6 +22,7 @@ import sys
 import tempfile
 import time
 
+from stepper_drivers.drive import complete
 from stepper_drivers.protocol import xmind_k as xk
 from stepper_drivers.vendors import xmind_k as v
 
@@ -42,12 +43,12 @@ def serve(link: str, ready, stop) -> None:
 def measure(drives: list, seconds: float) -> float:
     """Cycles per second: one read_state() (one QA) of every drive per cycle."""
     for d in drives:
-        d.read_state()
+        complete(d.read_state())
     n = 0
     t0 = time.monotonic()
     while time.monotonic() - t0 < seconds:
         for d in drives:
-            d.read_state()
+            complete(d.read_state())
         n += 1
     return n / (time.monotonic() - t0)
 
@@ -77,8 +78,8 @@ def main() -> int:
                   for i in (1, 2, 3)]
         bus.open()
         for i, d in enumerate(drives):
-            d.connect()
-            d.write_register('SA', 'i32', 10854000 + i)     # 8-digit answers, as example 4
+            complete(d.connect())
+            complete(d.write_register('SA', 'i32', 10854000 + i))   # 8-digit answers (example 4)
         answer = len(xk.encode_answer(xk.Frame(8, 'QA', (10854000,))))
         exact_s = xk.transaction_time_s(5, answer)
         print(f'line: 9600 8N1 on a pty with simulated timing; RD 0; answer {answer} chars')

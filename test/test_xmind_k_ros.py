@@ -78,7 +78,12 @@ def test_three_drives_move_home_with_line_timing_and_busy_silence(procs, ros, tm
     st = b.status('axis1', lambda m: m.homed and not m.moving)
     assert st.homing_state == 'ATTAINED' and st.position_steps == 0
     assert b.fresh_true_steps('axis1') == pytest.approx(0.0, abs=0.5)
-    # axis3 homes without a switch (method 60: RA); axis2 in - direction
+    # axis3 homes without a switch (method 60: RA); axis2 in - direction; homing needs the
+    # drive enabled (issue 9: a disabled drive once homed and moved)
+    r = b.call('axis3', 'home')
+    assert not r.success and 'not enabled' in r.message, r.message
+    b.enable('axis3')
+    b.enable('axis2')
     r = b.call('axis3', 'home')
     assert r.success and 'counter reset' in r.message, r.message
     r = b.call('axis2', 'home')
@@ -154,6 +159,41 @@ def test_pty_cut_and_restored_reconnects_and_stays_stopped(bench):
     assert bench.fresh_true_steps('axis1') == pytest.approx(318, abs=0.5)
     bench.command('axis1', 'position_command', 0.5)
     bench.status('axis1', lambda m: not m.moving and m.position_steps == 159, what='moves again')
+
+
+def test_power_cycle_behind_a_lost_link_raises_the_alarm(bench):
+    """Issue 10 item 2: a real power cycle silences the drive first (a lost link); after the
+    reconnect the alarm must be there, in status and diagnostics, until the next homing."""
+    def diag(drive, cond):
+        return bench.ros.wait_msg('/diagnostics', lambda a: any(
+            s.name.endswith(f': {drive}') and cond(s) for s in a.status), 10.0,
+            f'{drive} diagnostics')
+
+    bench.enable('axis3')
+    r = bench.call('axis3', 'home')                 # method 60: the counter is reset here
+    assert r.success, r.message
+    bench.command('axis3', 'position_command', 1.0)
+    bench.status('axis3', lambda m: m.homed and not m.moving and m.position_steps == 318,
+                 what='axis3 homed at 1 rad')
+    diag('axis3', lambda s: s.level == DiagnosticStatus.OK)
+    bench.inject('', 'cut')
+    bench.status('axis3', lambda m: m.state == 'DISCONNECTED', what='DISCONNECTED')
+    bench.inject('axis3', 'power_cycle')            # the drive restarts while the line is down
+    bench.inject('', 'link_ok')
+    st = bench.status('axis3', lambda m: m.connected, timeout_s=15.0, what='reconnected')
+    assert st.position_steps == 0 and not st.homed and not st.enabled
+    assert [a for a in st.alarms if a.startswith('power cycle detected')], st.alarms
+    d = diag('axis3', lambda s: s.level == DiagnosticStatus.WARN)
+    (status,) = [s for s in d.status if s.name.endswith(': axis3')]
+    assert 'power cycle detected' in status.message and 'home again' in status.message
+    assert not bench.status('axis1', lambda m: m.connected).alarms, 'axis1 kept its power'
+    r = bench.call('axis3', 'home')
+    assert not r.success and 'not enabled' in r.message, r.message
+    bench.enable('axis3')
+    r = bench.call('axis3', 'home')
+    assert r.success, r.message
+    bench.status('axis3', lambda m: m.homed and not m.alarms, what='alarm cleared by homing')
+    diag('axis3', lambda s: s.level == DiagnosticStatus.OK)
 
 
 def test_garbled_and_lost_replies_are_survived(bench):

@@ -10,8 +10,12 @@ How the common contract maps onto the drive (docs/xmind_k.md has the full table)
 - a velocity change while running is stop (`ES`), wait until the drive answers, rewrite, restart;
 - stop = `ES` for a free run (the only thing ES stops, §4.2.7), `EE` otherwise; quick stop = `EE`;
   a bus closed with drives in motion gets a broadcast `99EE`;
-- enable = `CY`, disable = `CN` (not readable back, so tracked); homing = zero search (03) plus
-  counter reset (60); fault reset does not exist (RefusedError); every preset is already stored.
+- enable = `CY`, disable = `CN` (not readable back, so tracked); what is checked on the wire
+  before every start is FA (no protection) and the power-cycle flag (the drive still runs the
+  power-on session in which it got CY); homing = zero search (03) plus counter reset (60);
+  fault reset does not exist (RefusedError); every preset is already stored;
+- every operation of more than one string is step-wise (drive.py): 0.0 is yielded between
+  strings, waits are yields; `stop()` is one string. A 9600 baud string takes 20-50 ms.
 """
 
 from __future__ import annotations
@@ -20,7 +24,7 @@ import dataclasses
 import logging
 import math
 import time
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
 from .. import drive
 from ..drive import (DriveError, DriveState, HomingState, LinkError, Motion, RefusedError,
@@ -49,7 +53,11 @@ BUSY_POLL_SLACK_S = 0.03  # a drive that may be busy: a late answer is taken at 
 
 class GarbledAnswer(DriveError):
     """Something answered, but not a valid answer to the request (after the retries): the
-    drive is there, this transaction failed."""
+    drive is there, this transaction failed. `answers`: the raw answers, one per try."""
+
+    def __init__(self, message: str, answers: tuple[bytes, ...] = ()):
+        super().__init__(message)
+        self.answers = answers
 
 
 # ----------------------------------------------------------------------------------------- bus
@@ -117,6 +125,7 @@ class XmindKBus(drive.Bus):
         line_s = len(raw) * self.char_s + xk.turnaround_s(frame.code) + rd_s
         prefix = raw[:2]
         garbled = None
+        answers: list[bytes] = []
         base_s = self.slack_s if slack_s is None else slack_s
         for attempt in range(tries):
             wait_s = base_s * (1 + RETRY_SLACK_FACTOR * attempt)
@@ -142,6 +151,7 @@ class XmindKBus(drive.Bus):
             except xk.ProtocolError as e:
                 self.garbled += 1
                 self.errors += 1
+                answers.append(answer)
                 garbled = f'{raw!r} got {answer!r}: {e}'
                 logger.debug('%s: garbled answer: %s', self.url, garbled)
         if garbled:
@@ -150,7 +160,7 @@ class XmindKBus(drive.Bus):
                 self.failed_in_a_row = 0
                 raise LinkError(f'{self.url}: {GARBLED_LINK_LOST} transactions in a row without '
                                 f'a valid answer, last: {garbled}')
-            raise GarbledAnswer(f'{self.url}: no valid answer: {garbled}')
+            raise GarbledAnswer(f'{self.url}: no valid answer: {garbled}', tuple(answers))
         return None
 
 
@@ -250,6 +260,13 @@ class Job:
 
 # ------------------------------------------------------------------------------------ drive
 class XmindKDrive(drive.Drive):
+    """One X-MIND K. Step-wise (drive.py): every operation of more than one string yields 0.0
+    between its strings, and its waits yield; stop() is one string.
+
+    `epoch` counts stops and motion commands: a step-wise start checks it before each string it
+    writes, so a stop or a newer command that ran between its steps cancels the older start
+    (nothing written to the drive after a stop that nobody commanded again)."""
+
     def __init__(self, bus: XmindKBus, name: str, params: Mapping[str, Any]):
         super().__init__(bus, name, params)
         self.number = int(params['address'])       # the drive address AA (§2.2.1)
@@ -277,17 +294,21 @@ class XmindKDrive(drive.Drive):
         self.busy_poll_s = float(params['busy_poll_period_s'])
         self.status_poll_s = float(params['status_poll_period_s'])
         self.rd_ms: int | None = None          # answer delay, read at connect (§4.2.2.5)
-        self.enabled = False
+        self.enabled = False                   # CY sent (current on/off is not readable)
         self.homed = False
         self.homing = HomingState.IDLE
         self.position_steps = 0
         self.fault = False
         self.error = (xk.ERROR_NONE, 0)        # QE at connect (a last-error register, §4.3.7)
-        self.alarms: list[str] = []
+        self.program_alarm = ''                # QE at connect, in words
+        self.power_alarm = ''                  # a power cycle was seen: until the next homing
         self.job: Job | None = None
         self.pending: tuple | None = None      # ('move', target, Motion) | ('velocity', v, Motion)
         self.last_target: int | None = None
         self.next_status_s = 0.0
+        self.epoch = 0                         # stops and motion commands so far (see above)
+        self.connects = 0                      # successful connects of this object
+        self.may_end_at_zero = False           # a job lost with the link could end at 0
         bus.addresses[name] = self.number     # (the node also builds drives only to check)
 
     # ---------------------------------------------------------------------------- transactions
@@ -309,8 +330,41 @@ class XmindKDrive(drive.Drive):
                             f'({1 + self.bus.retries} tries)')
         if answer.code == 'N':
             raise DriveError(f'drive {self.number:02d} answered N to '
-                             f'{xk.encode_request(xk.Frame(self.number, code, args))!r} '
-                             '(syntax or range, §4.4.2)')
+                             f'{self._text(code, *args)!r} (syntax or range, §4.4.2)')
+        return answer
+
+    def _text(self, code: str, *args) -> str:
+        return xk.encode_request(xk.Frame(self.number, code, args)).decode().rstrip('\r')
+
+    def _identify(self, code: str, *args, expected: str, silence_ok: bool = False
+                  ) -> xk.Frame | None:
+        """A data request at connect. Every idle X-MIND K answers every valid data request in
+        the §4.3 format, so an N, or the same wrong answer on every try, means the device at
+        this address is not an X-MIND K (IdentityError); silence raises LinkError (or gives
+        None with silence_ok: a busy drive is silent, §3)."""
+        request = self._text(code, *args)
+        try:
+            answer = self._ask(code, *args, tries=max(2, 1 + self.bus.retries))
+        except GarbledAnswer as e:
+            if len(e.answers) < 2 or len(set(e.answers)) != 1 \
+                    or not e.answers[0].endswith(xk.TERMINATOR):
+                raise                           # line noise: a transaction failed, no more
+            read = e.answers[0].decode('ascii', errors='replace').rstrip('\r')
+            echo = (' (that is the request itself: an adapter that echoes what it sends '
+                    'needs local_echo: true)' if read == request else '')
+            raise drive.IdentityError(
+                f'drive {self.number:02d}: {request!r} was answered {read!r} on every try, '
+                f'expected {expected!r} (§4.3): the device at address {self.number:02d} on '
+                f'{self.bus.url} is not an X-MIND K{echo}') from None
+        if answer is None:
+            if silence_ok:
+                return None
+            raise LinkError(f'drive {self.number:02d} did not answer {code} on {self.bus.url}')
+        if answer.code == 'N':
+            raise drive.IdentityError(
+                f'drive {self.number:02d}: {request!r} was answered N, expected {expected!r}: '
+                'every X-MIND K answers this data request (§4.3); the device at address '
+                f'{self.number:02d} on {self.bus.url} is not an X-MIND K')
         return answer
 
     def _command(self, code: str, *args) -> None:
@@ -318,17 +372,27 @@ class XmindKDrive(drive.Drive):
         if answer.code != 'Y':
             raise DriveError(f'drive {self.number:02d} answered {answer} to {code}')
 
-    def _start(self, cell: int) -> None:
-        """PS: never repeated (a lost Y would make the repeat land on a busy drive)."""
+    def _launch(self, cell: int, make_job: Callable[[float], Job]) -> None:
+        """PS: never repeated (a lost Y would make the repeat land on a busy drive). The job
+        is recorded before PS leaves: a lost answer is taken as a started program (the bus
+        then closes with 99EE), §3."""
+        self.job = make_job(time.monotonic())
         try:
             answer = self._ask('PS', cell, tries=1)
         except GarbledAnswer:
-            return        # something answered: the drive only refuses PS for syntax (§4.4.2)
+            answer = xk.Frame(self.number, 'Y')   # the drive refuses PS only for syntax
         if answer is None:
             raise LinkError(f'drive {self.number:02d} did not answer PS,{cell} on '
-                            f'{self.bus.url}')
+                            f'{self.bus.url}; taken as started')
         if answer.code != 'Y':
+            self.job = None
             raise DriveError(f'drive {self.number:02d} refused PS,{cell}')
+        self.job = make_job(time.monotonic())    # the estimate starts at the drive's Y
+
+    def _superseded(self, epoch: int) -> bool:
+        """A stop or a newer command ran between the steps of this one (or another started a
+        program): this one writes nothing more."""
+        return self.epoch != epoch or self.job is not None
 
     @property
     def address(self) -> str:
@@ -339,58 +403,103 @@ class XmindKDrive(drive.Drive):
         return self.job is not None
 
     # ------------------------------------------------------------------------------ life cycle
-    def connect(self) -> dict[str, str]:
+    def connect(self) -> drive.Steps[dict[str, str]]:
         self.bus.drives[self.name] = self
+        if self.job is not None:             # lost with the link: it may have ended at 0
+            self.may_end_at_zero = self.job.kind in ('homing', 'program') or self.job.goal == 0
         self.job, self.pending = None, None
+        self.epoch += 1
         self.rd_ms = None
-        answer = self._ask('QS', 'RS')
+        nn = f'{self.number:02d}'
+        rs_form = f'{nn}QS,RS,<D0..D3|B0..B3>'
+        answer = self._identify('QS', 'RS', expected=rs_form, silence_ok=True)
         if answer is None:
-            self._stop_unknown_program()
-            answer = self._need('QS', 'RS')
+            yield from self._stop_unknown_program()
+            answer = self._identify('QS', 'RS', expected=rs_form)
         rs = answer.args[1]
+        yield 0.0
+        ad = self._identify('QS', 'AD', expected=f'{nn}QS,AD,{nn}').args[1]
+        if ad != self.number:
+            # §4.2.2.1: a drive answers at the address of its AD preset, and only there
+            raise drive.IdentityError(
+                f'drive {nn}: QS,AD answered {ad:02d}, expected {nn}: the device answering at '
+                f'address {nn} on {self.bus.url} does not have that address preset, so it is '
+                'not an X-MIND K')
         if self.resolution and rs != self.resolution:
-            logger.warning('%s: drive %02d runs RS %s, writing %s (current off >= 200 ms, '
-                           '§4.2.2.3)', self.name, self.number, rs, self.resolution)
+            logger.warning('%s: drive %s runs RS %s, writing %s (current off >= 200 ms, '
+                           '§4.2.2.3)', self.name, nn, rs, self.resolution)
+            yield 0.0
             self._command('WS', 'RS', self.resolution)
-            self._wait_answering(xk.RS_SILENT_S + STOP_WAIT_S)
+            yield xk.RS_SILENT_S                 # deaf meanwhile (§4.2.2.3 Note 2)
+            yield from self._wait_answering(STOP_WAIT_S)
             rs = self.resolution
         if xk.RESOLUTIONS[rs] != self.steps_per_rev:
-            raise DriveError(f'drive {self.number:02d} runs resolution {rs} = '
-                             f'{xk.RESOLUTIONS[rs]} step/rev but drives.{self.name}.steps_per_rev'
-                             f' is {self.steps_per_rev:g}; set one of them')
+            raise drive.IdentityError(
+                f'drive {nn}: QS,RS answered {rs} = {xk.RESOLUTIONS[rs]} step/rev but '
+                f'drives.{self.name}.steps_per_rev is {self.steps_per_rev:g}: not the '
+                f'configured drive; set one of them (resolution: {rs} writes it, §4.2.2.3)')
         presets = {'RS': rs}
         for preset in ('RD', 'CM', *[k for k in self.presets_wanted if k != 'RD']):
-            value = self._need('QS', preset).args[1]
+            yield 0.0
+            value = self._identify('QS', preset, expected=f'{nn}QS,{preset},<value>').args[1]
             want = 0 if preset == 'CM' else self.presets_wanted.get(preset)
             if want is not None and value != want:
                 # EEPROM: written only when it differs (§4.2.2: every preset is stored)
-                logger.warning('%s: drive %02d preset %s is %s, writing %s', self.name,
-                               self.number, preset, value, want)
+                logger.warning('%s: drive %s preset %s is %s, writing %s', self.name, nn,
+                               preset, value, want)
+                yield 0.0
                 self._command('WS', preset, want)
                 value = want
             presets[preset] = value
             if preset == 'RD':
                 self.rd_ms = int(value)
-        qe = self._need('QE').args
+        yield 0.0
+        qe = self._identify('QE', expected=f'{nn}QE,<EC>,<BBB>').args
         self.error = (qe[0], qe[1])
-        self.fault = self._need('QO', 'FA').args[1] == 0
-        if self.flag and self._need('QO', self.flag).args[1] == 0:
-            # Flags are 0 at power-on (§8 A17 reading): new drive or power cycle; current is ON
-            # (§4.2.3) but not enabled by this node, and the counter restarted at 0.
-            self.enabled, self.homed, self.homing = False, False, HomingState.IDLE
-            self._command('SO', self.flag, 1)
-        self.position_steps = self._need('QA').args[0]
+        self.program_alarm = '' if qe[0] == xk.ERROR_NONE else \
+            f'last program error {qe[0]:02d} {xk.ERROR_TEXT.get(qe[0], "")} at cell {qe[1]:03d}'
+        yield 0.0
+        self.fault = self._identify('QO', 'FA', expected=f'{nn}QO,FA,<0|1>').args[1] == 0
+        flag_lost = False
+        if self.flag:
+            yield 0.0
+            flag_lost = self._identify('QO', self.flag,
+                                       expected=f'{nn}QO,{self.flag},<0|1>').args[1] == 0
+            if flag_lost:
+                # Flags are 0 at power-on (§8 A17 reading): a new drive or a power cycle.
+                # Current is ON (§4.2.3) but not enabled by this node, the counter restarted
+                # at 0. Recorded before the flag is set again (a failed connect is retried).
+                self.enabled, self.homed, self.homing = False, False, HomingState.IDLE
+                if self.connects:
+                    self._power_cycled(f'flag {self.flag} was 0 at reconnect')
+                yield 0.0
+                self._command('SO', self.flag, 1)
+        yield 0.0
+        position = self._identify('QA', expected=f'{nn}QA,<+-n>').args[0]
+        reconnect, self.connects = self.connects > 0, self.connects + 1
+        if reconnect and not self.flag and position == 0 and self.position_steps != 0 \
+                and not self.may_end_at_zero:
+            self._power_cycled(f'the position counter read 0 at reconnect, was '
+                               f'{self.position_steps} steps (§4.3.1 counts from power-on)')
+        self.position_steps, self.may_end_at_zero = position, False
         self.next_status_s = time.monotonic() + self.status_poll_s
-        self.alarms = [] if qe[0] == xk.ERROR_NONE else [
-            f'last program error {qe[0]:02d} {xk.ERROR_TEXT.get(qe[0], "")} at cell {qe[1]:03d}']
-        return {'address': f'{self.number:02d}',
+        return {'address': nn,
                 **{k: str(v) for k, v in presets.items()},
                 'steps_per_rev': str(xk.RESOLUTIONS[rs]),
                 'FA': '0 (protection)' if self.fault else '1',
                 'QE': f'{qe[0]:02d},{qe[1]:03d}',
                 'current': 'ON' if self.enabled else 'not enabled by this node (not readable)'}
 
-    def _stop_unknown_program(self) -> None:
+    def _power_cycled(self, why: str) -> None:
+        """The drive restarted: counter at 0 (§4.3.1), current ON by default (§4.2.3) but not
+        enabled by this node; the position reference is gone until the next homing."""
+        logger.warning('%s: drive %02d was power-cycled (%s): position reference lost, current '
+                       'ON by default (§4.2.3); enable and home again', self.name, self.number,
+                       why)
+        self.enabled, self.homed, self.homing = False, False, HomingState.IDLE
+        self.power_alarm = f'power cycle detected ({why}): position reference lost, home again'
+
+    def _stop_unknown_program(self) -> drive.Steps[None]:
         """Silent at connect: busy with something we did not start, or absent. EE is answered
         even by a busy drive (§3); after a reconnect nothing may go on moving by itself."""
         answer = self._ask('EE')
@@ -398,9 +507,10 @@ class XmindKDrive(drive.Drive):
             raise LinkError(f'drive {self.number:02d} does not answer on {self.bus.url} '
                             '(QS,RS and EE unanswered)')
         logger.warning('%s: drive %02d was busy at connect: sent EE', self.name, self.number)
-        self._wait_answering(STOP_WAIT_S)
+        yield STOP_POLL_S
+        yield from self._wait_answering(STOP_WAIT_S)
 
-    def _wait_answering(self, timeout_s: float) -> xk.Frame:
+    def _wait_answering(self, timeout_s: float) -> drive.Steps[xk.Frame]:
         """Poll QA until the drive answers again (it is silent while busy or after WS,RS)."""
         deadline = time.monotonic() + timeout_s
         while True:
@@ -409,11 +519,31 @@ class XmindKDrive(drive.Drive):
                 return answer
             if time.monotonic() > deadline:
                 raise LinkError(f'drive {self.number:02d} still silent after {timeout_s:g} s')
-            time.sleep(STOP_POLL_S)
+            yield STOP_POLL_S
+
+    def _wait_idle(self, timeout_s: float) -> drive.Steps[None]:
+        """Until the job (being stopped) ends: its estimated end first, then QA polls; a poll
+        running between these steps may end it too."""
+        deadline = time.monotonic() + timeout_s
+        while self.job is not None:
+            now = time.monotonic()
+            if now > deadline:
+                raise LinkError(f'drive {self.number:02d} still silent {timeout_s:g} s after '
+                                'the stop')
+            yield min(max(self.job.estimate.end_s - now, STOP_POLL_S), deadline - now)
+            if self.job is None:
+                return
+            answer = self._poll_busy()
+            if answer is not None and answer.code == 'QA':
+                self._job_ended(answer.args[0])
 
     # ------------------------------------------------------------------------------ read state
-    def read_state(self) -> DriveState:
+    def read_state(self) -> drive.Steps[DriveState]:
+        """Up to 7 strings (QA, SA after a homing, QO,FA, QO,flag and SO, WN and PS of a
+        pending start), one or two per step; a step that finds another operation in charge
+        (a command or stop ran between the steps) ends the poll with what it has."""
         now = time.monotonic()
+        epoch = self.epoch
         job = self.job
         if job is not None:
             if now < job.next_poll_s:
@@ -421,23 +551,42 @@ class XmindKDrive(drive.Drive):
             answer = self._poll_busy()
             if answer is None or answer.code != 'QA':
                 job.next_poll_s = now + self.busy_poll_s        # silent: still busy (§3)
-                self._check_alive(job, now)
+                if self._overdue(job, now):
+                    yield 0.0
+                    if self.job is job:
+                        self._check_alive(job, now)
                 return self._state(time.monotonic())
-            self._job_ended(answer.args[0])
+            self._job_ended(answer.args[0])       # with SA of a homing offset: same step
         else:
-            self.position_steps = self._need('QA').args[0]
-        if now >= self.next_status_s:
-            self._read_status()
+            position = self._need('QA').args[0]
+            if position == 0 and self.position_steps != 0:
+                # §4.3.1: the counter restarts at 0 at power-on, and nothing this node sent
+                # moved it: ask the flag now, or without one take it as a power cycle
+                if self.flag:
+                    self.next_status_s = 0.0
+                else:
+                    self._power_cycled(f'the position counter read 0, was '
+                                       f'{self.position_steps} steps (§4.3.1)')
+            self.position_steps = position
+        if self.job is None and (now >= self.next_status_s or self.pending is not None):
+            yield 0.0
+            if self.epoch != epoch or self.job is not None:
+                return self._state(time.monotonic())
+            yield from self._read_status()
         if self.job is None and self.pending is not None:
-            self._start_pending()
+            yield 0.0
+            if self.epoch == epoch and self.job is None and self.pending is not None:
+                yield from self._start_pending()
         return self._state(time.monotonic())
 
+    def _overdue(self, job: Job, now: float) -> bool:
+        """A move long overdue: busy or gone? (not for free runs or homing, see below)"""
+        return job.kind == 'move' and not job.stopping and now >= job.estimate.end_s + 1.0 \
+            and now >= job.pinged_s + 1.0
+
     def _check_alive(self, job: Job, now: float) -> None:
-        """A move long overdue: busy or gone? ES is answered even when busy and does nothing
-        to an indexed run (§4.2.7), so it tells the two apart (not for free runs or homing)."""
-        if job.kind != 'move' or job.stopping or now < job.estimate.end_s + 1.0 \
-                or now < job.pinged_s + 1.0:
-            return
+        """ES is answered even when busy and does nothing to an indexed run (§4.2.7), so it
+        tells a busy drive from a gone one."""
         job.pinged_s = now
         if self._ask('ES') is None:
             raise LinkError(f'drive {self.number:02d} answers neither QA nor ES on '
@@ -462,18 +611,36 @@ class XmindKDrive(drive.Drive):
 
     def _homed(self) -> None:
         self.homed, self.homing = True, HomingState.ATTAINED
-        self.alarms = [a for a in self.alarms if not a.startswith('power cycle')]
+        self.power_alarm = ''
 
-    def _read_status(self) -> None:
+    def _read_status(self) -> drive.Steps[None]:
+        """QO,FA and the power-cycle flag (SO,flag,1 when it was lost): the on-the-wire check
+        before every start, as current on/off cannot be read (§4.2.3): the drive is not
+        blocked by a protection and still runs the power-on session in which it got CY."""
         self.next_status_s = time.monotonic() + self.status_poll_s
         self.fault = self._need('QO', 'FA').args[1] == 0
-        if self.flag and self._need('QO', self.flag).args[1] == 0:
+        if not self.flag:
+            return
+        yield 0.0
+        if self.job is not None:
+            return                         # a start between the steps: the drive is busy
+        if self._need('QO', self.flag).args[1] == 0:
             # Flags are 0 at power-on: the drive was power-cycled, its counter restarted at 0.
-            logger.warning('%s: drive %02d lost flag %s: power cycle; position reference lost, '
-                           'current ON by default (§4.2.3)', self.name, self.number, self.flag)
-            self.homed, self.enabled = False, False
-            self.alarms = [f'power cycle detected (flag {self.flag} was 0): home again']
+            self._power_cycled(f'flag {self.flag} was 0')
             self._command('SO', self.flag, 1)
+
+    def _require_enabled(self, what: str) -> None:
+        self._refuse_in_fault(what)
+        if not self.enabled:
+            raise DriveError(
+                f'{what}: drive {self.number:02d} is not enabled (no CY from this node since it '
+                'connected or the drive was power-cycled; current on/off cannot be read back, '
+                '§4.2.3): call enable first' + (f'; {self.power_alarm}' if self.power_alarm
+                                                else ''))
+
+    def _refuse_in_fault(self, what: str) -> None:
+        if self.fault:
+            raise DriveError(f'{what}: {FAULT_TEXT}')
 
     def _state(self, now: float) -> DriveState:
         job = self.job
@@ -494,23 +661,33 @@ class XmindKDrive(drive.Drive):
                                            or self.last_target == self.position_steps),
             homed=self.homed, homing=self.homing, fault=self.fault,
             fault_code=1 if self.fault else 0, fault_text=FAULT_TEXT if self.fault else '',
-            alarms=tuple(self.alarms), mode=mode, status_word=0,
-            position_steps=int(round(position)), velocity_steps_s=velocity,
+            alarms=tuple(a for a in (self.power_alarm, self.program_alarm) if a), mode=mode,
+            status_word=0, position_steps=int(round(position)), velocity_steps_s=velocity,
             velocity_valid=False, position_estimated=job is not None)
 
     # -------------------------------------------------------------------------------- power
-    def enable(self) -> None:
-        if self.job is not None:
-            raise DriveError(f'drive {self.number:02d} is busy ({self.job.kind}); it answers '
-                             'only EE and ES until the program ends (§3)')
+    def enable(self) -> drive.Steps[None]:
+        self._refuse_busy('enable')
+        yield from self._read_status()       # a power cycle or a protection shows before CY
+        yield 0.0
+        self._refuse_busy('enable')
+        self._refuse_in_fault('enable')
         self._command('CY')                  # §4.2.3; nothing moves
         self.enabled = True
 
-    def disable(self) -> None:
+    def _refuse_busy(self, what: str) -> None:
+        if self.job is not None:
+            raise DriveError(f'{what}: drive {self.number:02d} is busy ({self.job.kind}); it '
+                             'answers only EE and ES until the program ends (§3)')
+
+    def disable(self) -> drive.Steps[None]:
+        self.epoch += 1
         self.pending = None
+        self.enabled = False                 # refuse motion from now, whatever comes of CN
         if self.job is not None:             # CN is not heard by a busy drive (§3)
             self._stop_job(quick=True)
-            self._job_ended(self._wait_answering(STOP_WAIT_S).args[0])
+            yield from self._wait_idle(STOP_WAIT_S)
+            yield 0.0
         self._command('CN')                  # §4.2.4
         self.enabled = False
 
@@ -527,11 +704,15 @@ class XmindKDrive(drive.Drive):
         """The RAM-cell instruction for a move ('move': steps) or a free run ('velocity': the
         sign of v_hz); returns it with its real frequency and acceleration."""
         f = abs(v_hz)
+        if not math.isfinite(f):
+            raise DriveError(f'{v_hz} Hz is not a step frequency (X-MIND K: 1..{RAMPED_MAX_HZ} '
+                             'Hz)')
         if f > RAMPED_MAX_HZ:
             raise DriveError(f'{f:.0f} Hz exceeds the X-MIND K maximum of {RAMPED_MAX_HZ} Hz '
-                             '(§4.1.2)')
+                             '(field FFF 030..240 x 100 Hz of instructions 31/32, §4.1.2)')
         if f < 1.0:
-            raise DriveError(f'{f:.3g} Hz is below the X-MIND K minimum of 1 Hz (Table 4)')
+            raise DriveError(f'{f:.3g} Hz is below the X-MIND K minimum of 1 Hz (field FFFF '
+                             '0001..4800 Hz of instructions 21/22, Table 4)')
         direction = '+' if v_hz >= 0 else '-'
         if f >= RAMPED_MIN_HZ:
             rr = self.ramp_code(min(motion.acceleration_steps_s2, motion.deceleration_steps_s2))
@@ -551,75 +732,127 @@ class XmindKDrive(drive.Drive):
                                         multiplier='x1')
         return instr, float(hz), math.inf
 
-    def move_to(self, target_steps: int, motion: Motion) -> None:
-        self._refuse_in_fault('move')
-        target_steps = int(target_steps)
-        job = self.job
-        if self.pending == ('move', target_steps, motion) or (
-                job is not None and job.kind == 'move' and not job.stopping
-                and job.goal == target_steps and self.pending is None):
-            return           # the same target again (a streaming command): nothing to send
-        self.last_target = target_steps
-        if self.job is not None or self.pending is not None:
-            self.pending = ('move', int(target_steps), motion)
-            if self.job is not None and not self.job.stopping:
-                self._stop_job(quick=False)
-            return
-        self._start_move(int(target_steps), motion)
+    def _check_target(self, target_steps: Any) -> int:
+        """The node computes targets in relative mode (§5.1): they must be positions the
+        32-bit counter can show (QA, §4.3.1), else a chain of index runs would never end."""
+        try:
+            target = int(target_steps)
+        except (OverflowError, ValueError):
+            target = None
+        if target is None or not xk.COUNTER_MIN <= target <= xk.COUNTER_MAX:
+            raise DriveError(f'move to {target_steps} steps: outside the X-MIND K position '
+                             f'counter range {xk.COUNTER_MIN}..{xk.COUNTER_MAX} (QA, §4.3.1, '
+                             '§5.1)')
+        return target
 
-    def _start_move(self, target: int, motion: Motion) -> None:
-        delta = target - self.position_steps
+    def move_to(self, target_steps: int, motion: Motion) -> drive.Steps[None]:
+        target = self._check_target(target_steps)
+        self.run_instruction('move', motion.velocity_steps_s, motion, 1)   # ranges, no wire
+        self._require_enabled('move')
+        job = self.job
+        if self.pending == ('move', target, motion) or (
+                job is not None and job.kind == 'move' and not job.stopping
+                and job.goal == target and self.pending is None):
+            return           # the same target again (a streaming command): nothing to send
+        self.epoch += 1
+        self.last_target = target
+        if job is not None or self.pending is not None:
+            self.pending = ('move', target, motion)
+            if job is not None and not job.stopping:
+                self._stop_job(quick=False)      # stop, then rewrite and restart (read_state)
+            return
+        yield from self._start_move(target, motion, self.epoch)
+
+    def _start_move(self, target: int, motion: Motion, epoch: int, checked: bool = False
+                    ) -> drive.Steps[None]:
+        """[FA, flag,] WN 228, PS 228: one index of at most +-8388607 steps (§4.1.2)."""
+        if not checked:
+            yield from self._read_status()
+            yield 0.0
+            if self._superseded(epoch):
+                return
+        self._require_enabled('move')
+        start = self.position_steps
+        delta = target - start
         if delta == 0:
             return
-        chunk = max(-xk.STEPS_MAX, min(xk.STEPS_MAX, delta))     # §4.1.2 +-8388607 per index
+        chunk = max(-xk.STEPS_MAX, min(xk.STEPS_MAX, delta))
         instr, f, a = self.run_instruction('move', motion.velocity_steps_s, motion, chunk)
         self._command('WN', MOVE_CELL, instr)
-        self._start(MOVE_CELL)
-        estimate = Estimate.index(time.monotonic(), self.position_steps, chunk, f, a)
-        self.job = Job('move', instr, estimate, a, estimate.end_s,
-                       target_steps=self.position_steps + chunk,
-                       final_target_steps=target if chunk != delta else None, motion=motion)
+        yield 0.0
+        if self._superseded(epoch):
+            return
 
-    def set_velocity(self, velocity_steps_s: float, motion: Motion) -> None:
-        self._refuse_in_fault('velocity')
-        if abs(velocity_steps_s) < 1.0:
+        def job(t: float) -> Job:
+            estimate = Estimate.index(t, start, chunk, f, a)
+            return Job('move', instr, estimate, a, estimate.end_s, target_steps=start + chunk,
+                       final_target_steps=target if chunk != delta else None, motion=motion)
+        self._launch(MOVE_CELL, job)
+
+    def set_velocity(self, velocity_steps_s: float, motion: Motion) -> drive.Steps[None]:
+        v = velocity_steps_s
+        if not math.isfinite(v):
+            raise DriveError(f'velocity {v} steps/s is not a step frequency')
+        if abs(v) < 1.0:                     # a stop: always allowed
+            self.epoch += 1
             self.pending = None
             if self.job is not None and not self.job.stopping:
                 self._stop_job(quick=False)
             return
-        instr = self.run_instruction('velocity', velocity_steps_s, motion)[0]
+        instr = self.run_instruction('velocity', v, motion)[0]
+        self._require_enabled('velocity')
         job = self.job
         if job is not None and job.kind == 'velocity' and job.instruction == instr \
                 and not job.stopping:
             self.pending = None
             return           # already running just so: nothing to send
+        self.epoch += 1
         self.last_target = None
         if job is not None or self.pending is not None:
-            self.pending = ('velocity', velocity_steps_s, motion)
+            self.pending = ('velocity', v, motion)
             if job is not None and not job.stopping:
                 self._stop_job(quick=False)          # stop, then rewrite and restart
             return
-        self._start_run(velocity_steps_s, motion)
+        yield from self._start_run(v, motion, self.epoch)
 
-    def _start_run(self, v: float, motion: Motion) -> None:
+    def _start_run(self, v: float, motion: Motion, epoch: int, checked: bool = False
+                   ) -> drive.Steps[None]:
+        """[FA, flag,] WN 229, PS 229: a free run (§4.1.4 / §4.1.8)."""
+        if not checked:
+            yield from self._read_status()
+            yield 0.0
+            if self._superseded(epoch):
+                return
+        self._require_enabled('velocity')
         instr, f, a = self.run_instruction('velocity', v, motion)
         self._command('WN', RUN_CELL, instr)
-        self._start(RUN_CELL)
-        now = time.monotonic()
-        self.job = Job('velocity', instr,
-                       Estimate.run(now, self.position_steps, math.copysign(f, v), a), a,
-                       now + self.busy_poll_s)
+        yield 0.0
+        if self._superseded(epoch):
+            return
+        start = self.position_steps
+        self._launch(RUN_CELL, lambda t: Job(
+            'velocity', instr, Estimate.run(t, start, math.copysign(f, v), a), a,
+            t + self.busy_poll_s))
 
-    def _start_pending(self) -> None:
+    def _start_pending(self) -> drive.Steps[None]:
+        """The command that waited for the stop of the previous job (from read_state, which
+        has just read FA and the flag)."""
         kind, value, motion = self.pending
         self.pending = None
-        if kind == 'move':
-            self._start_move(value, motion)
-        else:
-            self._start_run(value, motion)
+        start = self._start_move if kind == 'move' else self._start_run
+        try:
+            yield from start(value, motion, self.epoch, checked=True)
+        except LinkError:
+            raise
+        except DriveError as e:
+            self.last_target = None
+            raise DriveError(f'{kind} command not started after the stop: {e}') from None
 
     def stop(self, quick: bool = False) -> None:
+        """One string at most (EE or ES); cancels a start between its steps (epoch)."""
+        self.epoch += 1
         self.pending = None
+        self.last_target = None              # at rest after a stop = target reached (CiA 402)
         if self.job is not None:
             self._stop_job(quick)
 
@@ -639,52 +872,74 @@ class XmindKDrive(drive.Drive):
         if job.kind == 'homing':
             self.homing = HomingState.ERROR
 
-    def _refuse_in_fault(self, what: str) -> None:
-        if self.fault:
-            raise DriveError(f'{what}: {FAULT_TEXT}')
-
     # -------------------------------------------------------------------------------- homing
-    def start_homing(self, homing: drive.Homing) -> str:
-        if self.job is not None:
-            raise DriveError(f'drive {self.number:02d} is busy ({self.job.kind}); stop it '
-                             'before homing')
+    def start_homing(self, homing: drive.Homing) -> drive.Steps[str]:
+        self._refuse_busy('home')
+        p = f'drives.{self.name}.homing.'
+        offset = homing.offset_steps
+        if not xk.COUNTER_MIN <= offset <= xk.COUNTER_MAX:
+            raise DriveError(f'{p}offset = {offset} steps is outside the position counter '
+                             f'range {xk.COUNTER_MIN}..{xk.COUNTER_MAX} (SA, §4.2.9)')
+        if homing.method != 60:
+            search, reset, note = self._zero_search(homing, p)
+        self._require_enabled('home')
+        self.epoch += 1
+        epoch = self.epoch
         self.pending = None
         self.last_target = None
+        yield from self._read_status()       # on the wire: no protection, no power cycle
+        yield 0.0
+        if self._superseded(epoch):
+            raise DriveError('home: cut short by a stop or a newer command')
+        self._require_enabled('home')
         if homing.method == 60:
-            if homing.offset_steps:
-                self._command('SA', homing.offset_steps)
+            if offset:
+                self._command('SA', offset)
             else:
                 self._command('RA')
-            self.position_steps = homing.offset_steps
+            self.position_steps = offset
             self._homed()
-            return f'{HOMING_METHODS[60]}' + (f', then SA {homing.offset_steps}'
-                                              if homing.offset_steps else '')
-        p = f'drives.{self.name}.homing.'
-        ff = int(homing.speed_search_steps_s // 1000)
+            return f'{HOMING_METHODS[60]}' + (f', then SA {offset}' if offset else '')
+        self._command('WN', MOVE_CELL, search)        # §7.6: zero search, then counter reset
+        yield 0.0
+        if self._superseded(epoch):
+            raise DriveError('home: cut short by a stop or a newer command')
+        self._command('WN', RUN_CELL, reset)
+        yield 0.0
+        if self._superseded(epoch):
+            raise DriveError('home: cut short by a stop or a newer command')
+        a = xk.ramp_acceleration_hz_s(search.params[1])
+        v = xk.TABLE2_HZ[search.params[0]] * (1 if search.params[2] == '+' else -1)
+        start = self.position_steps
+        self._launch(MOVE_CELL, lambda t: Job(
+            'homing', search, Estimate.run(t, start, v, a), a, t + self.busy_poll_s,
+            target_steps=offset))
+        self.homed, self.homing = False, HomingState.RUNNING
+        return note
+
+    def _zero_search(self, homing: drive.Homing, p: str
+                     ) -> tuple[xk.Instruction, xk.Instruction, str]:
+        """Instruction 03 into cell 228 chained to 60 in 229 (§4.1.9, §4.1.20)."""
+        ff = int(homing.speed_search_steps_s // 1000) \
+            if math.isfinite(homing.speed_search_steps_s) else 0
         if ff not in xk.TABLE2_HZ:
             raise DriveError(f'{p}speed_search = {homing.speed_search_steps_s:.0f} Hz is outside '
-                             'the zero search fast speeds 3000..24000 Hz (Table 2)')
-        ll = int(homing.speed_zero_steps_s // 100)
+                             'the zero search fast speeds 3000..24000 Hz (field FF, Table 2)')
+        ll = int(homing.speed_zero_steps_s // 100) \
+            if math.isfinite(homing.speed_zero_steps_s) else 0
         if ll not in xk.TABLE3_HZ:
             raise DriveError(f'{p}speed_zero = {homing.speed_zero_steps_s:.0f} Hz is outside the '
-                             'zero search approach speeds 200..3000 Hz (Table 3)')
+                             'zero search approach speeds 200..3000 Hz (field LL, Table 3)')
         rr = self.ramp_code(homing.acceleration_steps_s2)
         direction = '+' if homing.method > 0 else '-'
         search = xk.Instruction.make(3, RUN_CELL, frequency_code=ff, ramp_code=rr,
                                      direction=direction, slow_code=ll)
         reset = xk.Instruction.make(60, xk.END_OF_PROGRAM)
-        self._command('WN', MOVE_CELL, search)        # §7.6: zero search, then counter reset
-        self._command('WN', RUN_CELL, reset)
-        self._start(MOVE_CELL)
-        a = xk.ramp_acceleration_hz_s(rr)
-        v = xk.TABLE2_HZ[ff] * (1 if direction == '+' else -1)
-        now = time.monotonic()
-        self.job = Job('homing', search, Estimate.run(now, self.position_steps, v, a), a,
-                       now + self.busy_poll_s, target_steps=homing.offset_steps)
-        self.homed, self.homing = False, HomingState.RUNNING
-        return (f'zero search {direction} at {xk.TABLE2_HZ[ff]} Hz (ramp {rr}), approach '
+        offset = homing.offset_steps
+        note = (f'zero search {direction} at {xk.TABLE2_HZ[ff]} Hz (ramp {rr}), approach '
                 f'{xk.TABLE3_HZ[ll]} Hz, then counter reset'
-                + (f' and SA {homing.offset_steps}' if homing.offset_steps else ''))
+                + (f' and SA {offset}' if offset else ''))
+        return search, reset, note
 
     # --------------------------------------------------------------------------- maintenance
     def fault_reset(self) -> str:
@@ -694,11 +949,16 @@ class XmindKDrive(drive.Drive):
             raise RefusedError(NO_FAULT_RESET)
         return ''
 
-    def save_params(self) -> str:
+    def save_params(self) -> drive.Steps[str]:
         if self.job is not None:
             raise DriveError(f'drive {self.number:02d} is busy; presets cannot be read back')
         values = []
-        for preset in xk.PRESETS:
+        for i, preset in enumerate(xk.PRESETS):
+            if i:
+                yield 0.0
+                if self.job is not None:
+                    raise DriveError(f'drive {self.number:02d} became busy; presets read so '
+                                     f'far: {", ".join(values)}')
             _, value, kkk = self._need('QS', preset).args
             values.append(f'{preset} {value}' + ('' if kkk is None else f',{kkk}'))
         return ('X-MIND K has no save command: every preset is stored in EEPROM when WS writes '
@@ -751,12 +1011,12 @@ class XmindKDrive(drive.Drive):
             raise DriveError(f'{text!r}: {e} (the drive would answer N)') from None
         if self.job is not None and code not in xk.BUSY_CODES:
             raise DriveError(f'drive {self.number:02d} is busy: only EE and ES are heard (§3)')
-        if code == 'PS':
-            self._start(frame.args[0])
-            now = time.monotonic()           # a stored program: busy until it answers again
-            self.job = Job('program', None, Estimate.at_rest(now, self.position_steps),
-                           math.inf, now + self.busy_poll_s)
+        if code == 'PS':                     # a stored program: busy until it answers again
+            self.epoch += 1
             self.last_target = None
+            position = self.position_steps
+            self._launch(frame.args[0], lambda t: Job(
+                'program', None, Estimate.at_rest(t, position), math.inf, t + self.busy_poll_s))
             return
         answer = self._need(frame.code, *frame.args)
         if answer.code != 'Y':
@@ -764,6 +1024,11 @@ class XmindKDrive(drive.Drive):
         if code in xk.BUSY_CODES and self.job is not None:
             self.job.stopping = True
             self.job.estimate.stop(time.monotonic(), self.job.accel_hz_s)
+        # what this node tracks because the drive cannot be asked (§4.2.3, §4.3.1)
+        if code in ('CY', 'CN'):
+            self.enabled = code == 'CY'
+        elif code in ('RA', 'SA'):
+            self.position_steps = frame.args[0] if code == 'SA' else 0
 
 
 # ---------------------------------------------------------------------------------- vendor
