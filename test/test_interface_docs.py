@@ -86,7 +86,8 @@ def interfaces(node, node_name: str) -> set[tuple[str, str, str]]:
 def params(node, vendor) -> dict[str, dict]:
     """Declared parameters by name (drives.<drive>. for per-drive ones), with their metadata."""
     from stepper_drivers.params import BUS_PARAMS, DRIVE_PARAMS
-    specs = {p.name: p for p in (*BUS_PARAMS, *vendor.params)}
+    specs = {p.name: p for p in (*BUS_PARAMS, *vendor.params)
+             if getattr(p, 'scope', 'bus') == 'bus'}
     specs.update({f'drives.<drive>.{p.name}': p for p in DRIVE_PARAMS})
     specs.update({f'drives.<drive>.{p.name}': p for p in vendor.params if p.scope == 'drive'})
     out = {}

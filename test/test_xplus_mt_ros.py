@@ -210,7 +210,9 @@ def test_bad_parameter_fails_start_up_with_one_line(procs, tmp_path):
                        '(allowed: an integer from 0 to 255)'), out
 
 
-def test_link_cut_during_velocity_run_ends_stopped_not_resumed(bench):
+def test_link_cut_during_velocity_run_ends_stopped_not_resumed(procs, ros, tmp_path):
+    # the drive's own watchdog (1097) off: this is about the node's watchdog after a reconnect
+    bench = Bench(procs, ros, tmp_path, node_args=('-p', 'drives.axis1.watchdog_ms:=0'))
     bench.enable('axis1')
     bench.command('axis1', 'velocity_command', 3.0)
     bench.status('axis1', lambda m: m.moving, what='running')
@@ -293,7 +295,9 @@ def test_move_to_and_homing_actions_give_feedback_and_result(bench):
     result = result_future.result().result
     assert result.success, result.message
     assert result.final_position == pytest.approx(4.0, abs=1e-3)
-    assert feedback and all(0.0 < f.distance_remaining <= 4.0 for f in feedback[1:])
+    # the last feedback may come from a snapshot at the target (within the 2-step tolerance,
+    # 1e-3 rad), before the result is decided
+    assert feedback and all(-1e-3 <= f.distance_remaining <= 4.0 for f in feedback[1:])
     home = ActionClient(bench.ros.node, Home, NODE + '/axis1/homing')
     assert home.wait_for_server(timeout_sec=10)
     done.clear()

@@ -16,7 +16,7 @@ import logging
 import time
 from typing import Callable
 
-from .drive import DriveError, HomingState, State
+from .drive import DriveError, HomingState, State, Steps
 
 logger = logging.getLogger(__name__)
 
@@ -255,9 +255,14 @@ def homing_state(statusword: int) -> HomingState:
     return HOMING_STATUS[key]
 
 
-# --- A small blocking driver -------------------------------------------------------------------
+# --- A small step-wise driver -------------------------------------------------------------------
 class Cia402Device:
     """Steps a drive through the tables over two callables (no transport of its own).
+
+    The waits are step-wise (`drive.Steps`): every method that waits is a generator that yields
+    the delay before its next transaction, so the bus owner serves other drives meanwhile; run one
+    to its end with `drive.complete()`. One step is one or two transactions. Closing a generator
+    at a yield writes nothing (no `finally` here talks to the drive).
 
     `min_delay_s` is the wait between a controlword write and the first statusword read that
     checks its effect (X-PLUS MT: "at least 12 ms", §13 "Register 1001" note).
@@ -273,13 +278,15 @@ class Cia402Device:
         self._write = write_controlword
         self.min_delay_s = min_delay_s
         self.name = name
-        self.controlword: int | None = None   # last value written, None before the first
+        self.controlword: int | None = None   # last value commanded, None before the first
         self._written_at = 0.0
 
     # Low level ---------------------------------------------------------------------------------
     def write(self, controlword: int) -> None:
-        self._write(controlword)
+        """One transaction. The value counts as commanded even when the reply is lost (a lost
+        reply is assumed to have reached the drive), so later words build on it."""
         self.controlword = controlword
+        self._write(controlword)
         self._written_at = time.monotonic()
 
     def read(self) -> int:
@@ -288,28 +295,31 @@ class Cia402Device:
     def state(self) -> State:
         return decode_state(self._read())
 
-    def _settle(self) -> None:
+    def settle(self) -> Steps[None]:
+        """The rest of the controlword -> statusword delay after the last write."""
         rest = self._written_at + self.min_delay_s - time.monotonic()
         if rest > 0:
-            time.sleep(rest)
+            yield rest
 
-    def wait_for(self, condition: Callable[[int], bool], timeout_s: float) -> tuple[bool, int]:
+    def wait_for(self, condition: Callable[[int], bool], timeout_s: float
+                 ) -> Steps[tuple[bool, int]]:
         """Poll the statusword (after the CW->SW delay) until condition(sw); (met, last sw)."""
         deadline = time.monotonic() + timeout_s
-        self._settle()
+        yield from self.settle()
         while True:
             sw = self._read()
             if condition(sw):
                 return True, sw
             if time.monotonic() >= deadline:
                 return False, sw
-            time.sleep(self.POLL_S)
+            yield self.POLL_S
 
     def _prefix(self) -> str:
         return f'{self.name}: ' if self.name else ''
 
     # State machine -----------------------------------------------------------------------------
-    def bring_to(self, target: State, timeout_s: float, reset_faults: bool = False) -> int:
+    def bring_to(self, target: State, timeout_s: float, reset_faults: bool = False
+                 ) -> Steps[int]:
         """Walk the table to `target`; return the final statusword.
 
         Each step writes one controlword and waits (up to the overall deadline) for the state to
@@ -328,15 +338,16 @@ class Cia402Device:
                                  f'{target.value}: fault reset first')
             if state == State.FAULT:
                 reset_faults = False   # one attempt
-                sw = self.fault_reset(max(deadline - time.monotonic(), self.min_delay_s))
+                sw = yield from self.fault_reset(
+                    max(deadline - time.monotonic(), self.min_delay_s))
                 continue
             cw = next_controlword(state, target) if state != State.UNKNOWN else None
             while True:
                 if cw is not None:
                     self.write(cw)   # again after RESEND_S: harmless for level commands
                 left = max(deadline - time.monotonic(), 0.0)
-                met, sw = self.wait_for(lambda s, st=state: decode_state(s) != st,
-                                        min(left, self.RESEND_S))
+                met, sw = yield from self.wait_for(lambda s, st=state: decode_state(s) != st,
+                                                   min(left, self.RESEND_S))
                 if met or left <= self.RESEND_S:
                     break
             if not met:
@@ -344,22 +355,22 @@ class Cia402Device:
                 raise DriveError(f'{self._prefix()}stuck in {describe(sw)}{after} on the way '
                                  f'to {target.value} ({timeout_s:g} s)')
 
-    def fault_reset(self, timeout_s: float) -> int:
+    def fault_reset(self, timeout_s: float) -> Steps[int]:
         """Fault reset as a bit-7 rising edge; returns the statusword afterwards.
 
         Waits out FAULT REACTION ACTIVE first. Leaves bit 7 at 0. Does not raise when the fault
         persists (cause still present): the caller reads why.
         """
         deadline = time.monotonic() + timeout_s
-        met, sw = self.wait_for(lambda s: decode_state(s) != State.FAULT_REACTION_ACTIVE,
-                                timeout_s)
+        met, sw = yield from self.wait_for(
+            lambda s: decode_state(s) != State.FAULT_REACTION_ACTIVE, timeout_s)
         if decode_state(sw) != State.FAULT:
             return sw
         for cw in FAULT_RESET_EDGE:
             self.write(cw)
-            self._settle()
-        met, sw = self.wait_for(lambda s: decode_state(s) != State.FAULT,
-                                max(deadline - time.monotonic(), 0.0))
+            yield from self.settle()
+        met, sw = yield from self.wait_for(lambda s: decode_state(s) != State.FAULT,
+                                           max(deadline - time.monotonic(), 0.0))
         self.write(FAULT_RESET_RELEASE)
         if not met:
             logger.info('%sfault reset did not clear the fault: %s', self._prefix(), describe(sw))
@@ -367,7 +378,7 @@ class Cia402Device:
 
     # Profile position --------------------------------------------------------------------------
     def start_set_point(self, base_cw: int, relative: bool = False, immediate: bool = False,
-                        timeout_s: float = 0.5) -> int:
+                        timeout_s: float = 0.5) -> Steps[int]:
         """New-set-point handshake: bit 4 up, wait for SW bit 12, bit 4 down; returns the sw.
 
         A previous bit 4 still set is first cleared, so the drive sees a rising edge.
@@ -376,9 +387,9 @@ class Cia402Device:
         idle = cw & ~CW_BIT_NEW_SET_POINT
         if self.controlword is None or self.controlword & CW_BIT_NEW_SET_POINT:
             self.write(idle)
-            self.wait_for(lambda s: not set_point_acknowledged(s), timeout_s)
+            yield from self.wait_for(lambda s: not set_point_acknowledged(s), timeout_s)
         self.write(cw)
-        met, sw = self.wait_for(set_point_acknowledged, timeout_s)
+        met, sw = yield from self.wait_for(set_point_acknowledged, timeout_s)
         self.write(idle)
         if not met:
             raise DriveError(f'{self._prefix()}set point not acknowledged (statusword bit 12) '

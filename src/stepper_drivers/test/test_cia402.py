@@ -10,7 +10,7 @@ import time
 import pytest
 
 from stepper_drivers import cia402
-from stepper_drivers.drive import DriveError, HomingState, State
+from stepper_drivers.drive import DriveError, HomingState, State, complete
 
 SOD, RTSO, SO, OE = (State.SWITCH_ON_DISABLED, State.READY_TO_SWITCH_ON, State.SWITCHED_ON,
                      State.OPERATION_ENABLED)
@@ -211,7 +211,7 @@ def _device(drive, delay=0.001):
 ])
 def test_path_to_operation_enabled(start, cws):
     drive = ScriptedDrive(start)
-    sw = _device(drive).bring_to(OE, timeout_s=1.0, reset_faults=True)
+    sw = complete(_device(drive).bring_to(OE, timeout_s=1.0, reset_faults=True))
     assert sw == 0x0637
     assert drive.cws == cws
 
@@ -222,35 +222,35 @@ def test_path_to_operation_enabled(start, cws):
 ])
 def test_path_back_to_switch_on_disabled(start, cws):
     drive = ScriptedDrive(start)
-    assert _device(drive).bring_to(SOD, timeout_s=1.0, reset_faults=True) == 0x0270
+    assert complete(_device(drive).bring_to(SOD, timeout_s=1.0, reset_faults=True)) == 0x0270
     assert drive.cws == cws
 
 
 def test_fault_on_the_way_raises_without_reset():
     drive = ScriptedDrive(0x0218)
     with pytest.raises(DriveError, match=r'axis1: in FAULT \(statusword 0x0218\)'):
-        _device(drive).bring_to(OE, timeout_s=0.5)
+        complete(_device(drive).bring_to(OE, timeout_s=0.5))
     assert drive.cws == []
 
 
 def test_fault_reset_is_a_rising_edge_then_released():
     drive = ScriptedDrive(0x0218)
     drive.prev_cw = 0x80            # bit 7 left high by someone: a plain 0x80 is no edge
-    sw = _device(drive).fault_reset(timeout_s=0.5)
+    sw = complete(_device(drive).fault_reset(timeout_s=0.5))
     assert cia402.decode_state(sw) == SOD
     assert drive.cws == [0x00, 0x80, 0x00]
 
 
 def test_fault_reset_waits_out_fault_reaction_active():
     drive = ScriptedDrive(0x201F, fra_reads=3)
-    sw = _device(drive).fault_reset(timeout_s=0.5)
+    sw = complete(_device(drive).fault_reset(timeout_s=0.5))
     assert sw == 0x0270
     assert drive.cws == [0x00, 0x80, 0x00]
 
 
 def test_fault_reset_with_cause_present_returns_fault():
     drive = ScriptedDrive(0x0218, fault_clears=False)
-    sw = _device(drive).fault_reset(timeout_s=0.1)
+    sw = complete(_device(drive).fault_reset(timeout_s=0.1))
     assert cia402.decode_state(sw) == FAULT
     assert drive.cws[-1] & 0x80 == 0     # bit 7 back to 0
 
@@ -258,14 +258,14 @@ def test_fault_reset_with_cause_present_returns_fault():
 def test_no_high_voltage_sticks_in_ready_to_switch_on():
     drive = ScriptedDrive(0x0260, table=NO_HV)
     with pytest.raises(DriveError) as err:
-        _device(drive).bring_to(OE, timeout_s=0.15)
+        complete(_device(drive).bring_to(OE, timeout_s=0.15))
     assert 'stuck in READY TO SWITCH ON (statusword 0x0221) after controlword 0x0007' \
         in str(err.value)
 
 
 def test_controlword_statusword_delay_respected():
     drive = ScriptedDrive(0x0270)
-    _device(drive, delay=0.012).bring_to(OE, timeout_s=1.0)
+    complete(_device(drive, delay=0.012).bring_to(OE, timeout_s=1.0))
     gaps = [t2 - t1 for (k1, t1), (k2, t2) in zip(drive.events, drive.events[1:])
             if k1 == 'w' and k2 == 'r']
     assert len(gaps) == 3
@@ -294,7 +294,7 @@ def test_set_point_handshake():
     drive = PpResponder()
     dev = _device(drive)
     dev.write(0x000F)
-    sw = dev.start_set_point(0x000F, immediate=True)
+    sw = complete(dev.start_set_point(0x000F, immediate=True))
     assert sw & 0x1000
     assert drive.cws == [0x0F, 0x3F, 0x2F]
     assert drive.sw & 0x1000 == 0
@@ -304,7 +304,7 @@ def test_set_point_needs_a_fresh_edge():
     drive = PpResponder()
     dev = _device(drive)
     dev.write(0x001F)               # bit 4 still high from elsewhere
-    dev.start_set_point(0x000F, relative=True)
+    complete(dev.start_set_point(0x000F, relative=True))
     assert drive.cws == [0x1F, 0x4F, 0x5F, 0x4F]   # bit 6 already stable before the edge
 
 
@@ -313,5 +313,50 @@ def test_set_point_not_acknowledged():
     dev = _device(drive)
     dev.write(0x000F)
     with pytest.raises(DriveError, match='bit 12.*0x001F'):
-        dev.start_set_point(0x000F, timeout_s=0.05)
+        complete(dev.start_set_point(0x000F, timeout_s=0.05))
     assert drive.cws[-1] == 0x0F
+
+
+# --- Step-wise contract (drive.py): the bus is given back between transactions ----------------
+def _run_counting(steps, drive):
+    """Run a step-wise operation as the bus owner would (sleeping for each yielded delay);
+    returns (result, [transactions per step], [delays])."""
+    per_step, delays, drive_events = [], [], drive.events
+    seen = len(drive_events)
+    while True:
+        try:
+            delay = next(steps)
+        except StopIteration as stop:
+            per_step.append(len(drive_events) - seen)
+            return stop.value, per_step, delays
+        per_step.append(len(drive_events) - seen)
+        seen = len(drive_events)
+        delays.append(delay)
+        time.sleep(delay)
+
+
+def test_bring_to_yields_between_transactions():
+    drive = ScriptedDrive(0x0270)
+    sw, per_step, delays = _run_counting(_device(drive, delay=0.012).bring_to(OE, 1.0), drive)
+    assert sw == 0x0637 and drive.cws == [0x06, 0x07, 0x0F]
+    assert max(per_step) <= 2                     # one or two transactions per step
+    # after each controlword write the next step waits the 12 ms CW -> SW delay (§13 1001)
+    assert sum(1 for d in delays if 0.005 < d <= 0.012) == 3
+
+
+def test_set_point_handshake_yields_between_transactions():
+    drive = PpResponder()
+    dev = _device(drive, delay=0.012)
+    dev.write(0x000F)
+    sw, per_step, _ = _run_counting(dev.start_set_point(0x000F, immediate=True), drive)
+    assert sw & 0x1000 and drive.cws == [0x0F, 0x3F, 0x2F]
+    assert max(per_step) <= 2
+
+
+def test_closing_a_step_wise_operation_writes_nothing():
+    drive = ScriptedDrive(0x0270)
+    steps = _device(drive, delay=0.012).bring_to(OE, 1.0)
+    next(steps)                                   # 0x0006 written, waiting for the statusword
+    assert drive.cws == [0x06]
+    steps.close()                                 # a stop or a link loss cuts it short
+    assert drive.cws == [0x06]                    # nothing more went to the drive

@@ -12,7 +12,7 @@ from pymodbus.server import ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
 from stepper_drivers.drive import DriveError, LinkError
-from stepper_drivers.protocol.modbus_tcp import ModbusTcpBus, make_bus
+from stepper_drivers.protocol.modbus_tcp import ModbusExceptionError, ModbusTcpBus, make_bus
 
 READ_ONLY = 1001
 
@@ -99,6 +99,7 @@ def test_exception_reply_names_fc_address_and_code(bus):
     with pytest.raises(DriveError) as err:
         bus.write_registers(1, 1000, [1, 2, 3])
     assert not isinstance(err.value, LinkError)
+    assert isinstance(err.value, ModbusExceptionError) and err.value.code == 0x02
     assert 'FC16 write at 1000: exception 0x02 ILLEGAL DATA ADDRESS' in str(err.value)
     with pytest.raises(DriveError, match='FC06 write at 1001: exception 0x02 ILLEGAL DATA'):
         bus.write_registers(1, 1001, [5], single=True)

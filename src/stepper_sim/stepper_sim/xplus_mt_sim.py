@@ -3,8 +3,10 @@
 Behaviour from the manual (`shared/manuals/rta_xplus_mt_modbus_tcp.txt`; "§12" etc. are its
 chapters, "T13" its tables, "A<n>" the ambiguities of `shared/spec/xplus_mt.md` §11):
 - holding registers of `xplus_mt_map` on FC 03/04/06/10; several drives by unit id on one port
-  (unknown unit ids: exception 0x0B); exceptions per spec §1.3 (strict): 0x01 other FCs, 0x02
-  unmapped address or write to a read-only register, 0x03 value out of range;
+  (unknown unit ids: exception 0x0B); exceptions per spec §1.3 (strict): 0x01 any other function
+  code (whatever its address), 0x02 unmapped address or write to a read-only register, 0x03
+  value out of range, a quantity outside the Modbus limits (FC03/04 1..125, FC16 1..123) or a
+  malformed request (Modbus Application Protocol v1.1b3 §6.3, §7);
 - 32-bit values in the word order of register 1162; a pair commits when its second (higher
   address) word is written, FC06 on the first word stays pending (§11 "Data Format", A2);
 - the CiA 402 state machine of T13/T14 evaluated on controlword levels (A4): power-on SWITCH ON
@@ -15,7 +17,8 @@ chapters, "T13" its tables, "A<n>" the ambiguities of `shared/spec/xplus_mt.md` 
   homing methods 3-6, 19-22, 35, 37 (§13 "Homing Mode") on a simulated axis (`axis.py`);
 - faults with the 1007 codes and the alarm log 1220-1239, fault reset only without the cause,
   save 0x6173/0x1111 to 1260 (a JSON file per unit in storage_dir), restore 0x6F6C to 1261, the
-  1097 watchdog.
+  1097 watchdog (§13 "Register 1097": no read or write request for this unit within the timeout
+  -> Fault, current off; time the simulator itself was not running does not count).
 Link faults go through a `FaultyTcpProxy` in front of the pymodbus server.
 
 Non-ROS API: `XplusMtSim(...).start()`, `.port`, `.drives[name]`, `.inject_fault()`, `.stop()`.
@@ -36,6 +39,7 @@ import time
 from typing import Callable, Sequence
 
 from pymodbus.constants import ExcCodes
+from pymodbus.pdu import DecodePDU, ExceptionResponse, ModbusPDU
 from pymodbus.server import ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
@@ -146,6 +150,9 @@ class XplusMtDriveConfig:
     serial_number: int | None = None  # default 100000 + unit_id
     homing_max_travel_steps: float = 50 * xm.STEPS_PER_REV
     input_config: int | None = None   # initial 1088 (a commissioned drive); None: default/stored
+    # power-on register values by address, not checked against the map (a device that is not an
+    # X-PLUS MT, e.g. {1081: 200}; tests of the driver's identity checks)
+    registers: dict[int, int] = dataclasses.field(default_factory=dict)
     watchdog_error_code: int = 0x8400  # A15: the manual gives no code for the 1097 timeout
     pv_bit10: str = 'threshold'       # A9: 'threshold' (literal manual) or 'cia' (|vt - v| band)
 
@@ -207,6 +214,10 @@ class XplusMtDevice:
                 raise ValueError(f'drive {self.name}: input_config {config.input_config} not '
                                  f'in {xm.REGISTERS["INPUT_CONFIG"].range_text()}')
             self._regs[1088] = config.input_config
+        for address, value in config.registers.items():
+            if address not in self._regs:
+                raise ValueError(f'drive {self.name}: registers: {address} is not a register')
+            self._regs[address] = int(value)
         self._pending: dict[int, int] = {}      # first words of 32-bit pairs written alone
         self.state = SOD                        # §12 note: 24 V on -> SWITCH ON DISABLED
         self.controlword = 0
@@ -247,7 +258,8 @@ class XplusMtDevice:
     # ------------------------------------------------------------------ public helpers
     @property
     def word_order(self) -> str:
-        return xm.WORD_ORDER_BY_1162[self._regs[1162]]
+        # a foreign 1162 value (config.registers) reads as the X-PLUS MT default order
+        return xm.WORD_ORDER_BY_1162.get(self._regs[1162], 'little')
 
     @property
     def mode(self) -> int:
@@ -297,6 +309,12 @@ class XplusMtDevice:
                     now - self._last_request_s > timeout_ms / 1000.0:
                 logger.info('%s: watchdog (1097 = %d ms) expired', self.name, timeout_ms)
                 self._fault(self.config.watchdog_error_code, now, persistent=False)
+
+    def excuse(self, stall_s: float) -> None:
+        """The simulator did not run for stall_s (a starved host): requests may have waited in
+        the socket meanwhile, so that time does not count against the master (1097)."""
+        with self._lock:
+            self._last_request_s += stall_s
 
     def _hv_stable(self, now: float) -> bool:
         return self.hv_present and now - self._hv_since >= HV_STABLE_S
@@ -1019,6 +1037,43 @@ def _clamp_i32(value: int) -> int:
     return max(xm.I32_MIN, min(xm.I32_MAX, int(value)))
 
 
+class _Refusal(ModbusPDU):
+    """A request answered by an exception without touching the device model."""
+
+    def __init__(self, function_code: int, exception_code: ExcCodes):
+        super().__init__()
+        self.function_code = function_code
+        self.exception_code_to_send = exception_code
+
+    async def datastore_update(self, context, device_id) -> ModbusPDU:
+        return ExceptionResponse(self.function_code, self.exception_code_to_send)
+
+
+class _XplusMtDecoder(DecodePDU):
+    """Request decoding as the drive answers it (spec §1.3; Modbus Application Protocol v1.1b3
+    §6.3/§6.4/§6.12, §7). pymodbus alone serves FC 01/02/05/07/08/0F/11/2B as a generic device
+    (FC07 and FC08 even answer normally) and replies `80 01` (function code 0, not an exception
+    reply of the request's function) when it cannot decode a request, e.g. FC03 with quantity 0
+    or 126."""
+
+    FUNCTION_CODES = (3, 4, 6, 16)     # §11 "Supported Function Code"
+
+    def __init__(self):
+        super().__init__(True)
+
+    def decode(self, frame: bytes) -> ModbusPDU | None:
+        if not frame:
+            return None
+        function_code = frame[0]
+        if function_code not in self.FUNCTION_CODES:
+            return _Refusal(function_code & 0x7F, ExcCodes.ILLEGAL_FUNCTION)
+        if function_code in (3, 4) and not (   # pymodbus would fail to decode these
+                len(frame) >= 5 and 1 <= int.from_bytes(frame[3:5], 'big') <= 125):
+            return _Refusal(function_code, ExcCodes.ILLEGAL_VALUE)
+        # FC16's quantity (1..123) and byte count reach pymodbus's own check (0x03) already
+        return super().decode(frame) or _Refusal(function_code, ExcCodes.ILLEGAL_VALUE)
+
+
 class XplusMtSim:
     """One Modbus TCP port (127.0.0.1) with one or more simulated X-PLUS MT drives.
 
@@ -1156,6 +1211,7 @@ class XplusMtSim:
                    for dev in self.drives.values()]
         devices.append(SimDevice(id=0, simdata=[self._block()], action=self._unknown_unit))
         server = ModbusTcpServer(devices, address=(self.host, 0))
+        server.decoder = _XplusMtDecoder()      # before serving: each connection copies it
         proxy: FaultyTcpProxy | None = None
         ticker: asyncio.Task | None = None
         try:
@@ -1190,10 +1246,19 @@ class XplusMtSim:
 
     async def _tick(self) -> None:
         """Time-driven behaviour without traffic (homing, watchdog, HV-stable Switch On)."""
+        loop = asyncio.get_running_loop()
+        last = loop.time()
         while True:
             await asyncio.sleep(self.tick_s)
+            now = loop.time()
+            # a tick much later than asked: this process was not running (a real drive's
+            # watchdog would have seen the requests that are now queued in the socket)
+            stall = now - last - self.tick_s
+            last = now
             for dev in self.drives.values():
                 try:
+                    if stall > self.tick_s:
+                        dev.excuse(stall)
                     dev.update()
                 except Exception:
                     logger.exception('%s: update failed', dev.name)
@@ -1206,9 +1271,8 @@ class XplusMtSim:
     async def _action(self, dev: XplusMtDevice, function_code: int, start_address: int,
                       address: int, count: int, registers: list[int],
                       set_values: list[int] | list[bool] | None) -> ExcCodes | None:
-        """pymodbus SimDevice hook: the device model answers every request."""
-        if function_code not in (3, 4, 6, 16):
-            return ExcCodes.ILLEGAL_FUNCTION        # §11 "Supported Function Code"
+        """pymodbus SimDevice hook: the device model answers every request (FC 03/04/06/16 only:
+        _XplusMtDecoder answers the others)."""
         if self.line_timing and self.reply_latency_s > 0:
             await asyncio.sleep(self.reply_latency_s)
         if set_values is not None:

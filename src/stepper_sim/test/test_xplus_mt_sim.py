@@ -6,6 +6,8 @@ spec/xplus_mt.md §3.5/§10/§12; 32-bit words are packed here by hand, not with
 
 import json
 import os
+import socket
+import struct
 import time
 
 import pytest
@@ -332,6 +334,18 @@ def test_watchdog_faults_without_traffic(sim, client):
     assert client.sw() == 0x0270
 
 
+def test_a_stalled_simulator_does_not_blame_the_master(sim, client):
+    """A starved host stops the simulator's loop; requests wait in the socket meanwhile. A real
+    drive would have seen them in time, so the stall does not count against the master."""
+    client.write(1097, 200)
+    sim._loop.call_soon_threadsafe(time.sleep, 0.5)    # the server loop stalls for 0.5 s
+    deadline = time.monotonic() + 1.0
+    while time.monotonic() < deadline:                 # the master polls all along
+        assert client.sw() & 0x004F != 0x0008          # never Fault
+        time.sleep(0.02)
+    client.write(1097, 0)
+
+
 def test_save_restore_and_load_at_start(sim, client, tmp_path):
     client.write(1080, 50)                             # Current Ratio (storable **)
     client.write(1122, 1234)                           # User Data RAM (not storable)
@@ -398,6 +412,50 @@ def test_exceptions(client):
     assert client.exception(mb.write_registers(1080, [50, 12_801], device_id=1)) == 3
     assert client.read(1080) == [70]
     assert client.sw() == 0x0270
+
+
+def raw_request(port: int, pdu: bytes, unit: int = 1, transaction: int = 0x1234) -> bytes:
+    """One Modbus TCP request over a plain socket; the whole reply (MBAP header + PDU)."""
+    with socket.create_connection(('127.0.0.1', port), timeout=2.0) as s:
+        s.sendall(struct.pack('>HHHB', transaction, 0, len(pdu) + 1, unit) + pdu)
+        header = b''
+        while len(header) < 7:
+            header += s.recv(7 - len(header))
+        length = struct.unpack('>H', header[4:6])[0]
+        body = b''
+        while len(body) < length - 1:
+            body += s.recv(length - 1 - len(body))
+    return header + body
+
+
+@pytest.mark.parametrize('pdu,reply', [
+    # function codes the drive does not have (§11 "Supported Function Code"): 0x01, wherever
+    (bytes([0x01, 0x00, 0x00, 0x00, 0x01]), bytes([0x81, 0x01])),   # read coils at 0
+    (bytes([0x01, 0x03, 0xE9, 0x00, 0x01]), bytes([0x81, 0x01])),   # ... at 1001
+    (bytes([0x02, 0x00, 0x00, 0x00, 0x01]), bytes([0x82, 0x01])),
+    (bytes([0x05, 0x00, 0x00, 0xFF, 0x00]), bytes([0x85, 0x01])),
+    (bytes([0x07]), bytes([0x87, 0x01])),                           # read exception status
+    (bytes([0x08, 0x00, 0x00, 0x12, 0x34]), bytes([0x88, 0x01])),   # diagnostics (echo)
+    (bytes([0x11]), bytes([0x91, 0x01])),                           # report server id
+    (bytes([0x2B, 0x0E, 0x01, 0x00]), bytes([0xAB, 0x01])),         # device identification
+    (bytes([0x17, 0x03, 0xE9, 0x00, 0x01, 0x04, 0x62, 0x00, 0x01, 0x02, 0x00, 0x01]),
+     bytes([0x97, 0x01])),
+    # quantity outside 1..125 (Modbus Application Protocol §6.3/§6.4): 0x03 of that function
+    (bytes([0x03, 0x03, 0xE9, 0x00, 0x00]), bytes([0x83, 0x03])),
+    (bytes([0x03, 0x03, 0xE9, 0x00, 0x7E]), bytes([0x83, 0x03])),
+    (bytes([0x04, 0x03, 0xE9, 0x00, 0x00]), bytes([0x84, 0x03])),
+    (bytes([0x04, 0x03, 0xE9, 0x00, 0x7E]), bytes([0x84, 0x03])),
+    (bytes([0x03, 0x03, 0xE9]), bytes([0x83, 0x03])),               # truncated request
+    (bytes([0x10, 0x04, 0x10, 0x00, 0x00, 0x00]), bytes([0x90, 0x03])),
+    # the normal answers stay as they were
+    (bytes([0x03, 0x03, 0xE9, 0x00, 0x01]), bytes([0x03, 0x02, 0x02, 0x70])),
+    (bytes([0x04, 0x03, 0xE9, 0x00, 0x01]), bytes([0x04, 0x02, 0x02, 0x70])),
+    (bytes([0x03, 0x03, 0xE8, 0x00, 0x7D]), bytes([0x83, 0x02])),   # 1000 is no register
+])
+def test_exception_replies_on_the_wire(sim, pdu, reply):
+    got = raw_request(sim.port, pdu)
+    # MBAP: transaction id echoed, protocol 0, length = unit + PDU, unit echoed
+    assert got == struct.pack('>HHHB', 0x1234, 0, len(reply) + 1, 1) + reply, got.hex(' ')
 
 
 def test_several_units_on_one_port(sim, client):

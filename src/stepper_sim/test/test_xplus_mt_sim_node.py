@@ -52,7 +52,8 @@ def test_executable_ready_services_modbus_and_sigint(ros, tmp_path):
         mb = ModbusTcpClient('127.0.0.1', port=port, timeout=1.0, retries=0)
         assert mb.connect()
         assert mb.read_holding_registers(1001, count=1, device_id=1).registers == [0x0270]
-        assert mb.read_holding_registers(1088, count=1, device_id=1).registers == [14]
+        # the shipped simulator is a factory drive: Input Config 15, every input general purpose
+        assert mb.read_holding_registers(1088, count=1, device_id=1).registers == [15]
 
         positions = []
         node.create_subscription(Float64, '/xplus_mt_sim/axis1/true_position_steps',
@@ -91,5 +92,5 @@ def test_bad_parameter_names_itself():
         pytest.fail(f'{EXE} missing: run scripts/bootstrap.sh')
     result = subprocess.run([str(EXE), '--ros-args', '-p', 'port:=70000'], capture_output=True,
                             text=True, timeout=30, cwd=WS)
-    assert result.returncode == 1
+    assert result.returncode == 2              # sim_node: a bad parameter exits 2
     assert 'parameter port: 70000 not in 0..65535' in result.stderr

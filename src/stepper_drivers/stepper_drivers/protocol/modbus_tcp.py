@@ -38,6 +38,14 @@ MAX_READ_COUNT = 125     # Modbus limit for FC03
 MAX_WRITE_COUNT = 123    # Modbus limit for FC16
 
 
+class ModbusExceptionError(drive.DriveError):
+    """The device answered with a Modbus exception (`code`, e.g. 0x02): the link is fine."""
+
+    def __init__(self, message: str, code: int):
+        super().__init__(message)
+        self.code = code
+
+
 class ModbusTcpBus(drive.Bus):
     """One TCP connection to a Modbus server; several unit ids may share it."""
 
@@ -146,12 +154,20 @@ class ModbusTcpBus(drive.Bus):
                 self.exceptions += 1
                 code = int(getattr(reply, 'exception_code', 0))
                 name = EXCEPTION_NAMES.get(code, 'UNKNOWN EXCEPTION')
-                raise drive.DriveError(f'{self.host}:{self.port} unit {unit_id}: {what}: '
-                                       f'exception 0x{code:02X} {name}')
+                raise ModbusExceptionError(f'{self.host}:{self.port} unit {unit_id}: {what}: '
+                                           f'exception 0x{code:02X} {name}', code)
             return reply
 
 
 def make_bus(params: Mapping[str, Any]) -> ModbusTcpBus:
-    return ModbusTcpBus(host=str(params.get('host', '127.0.0.1')),
-                        port=int(params.get('port', 502)),
-                        timeout_s=float(params.get('timeout_s', 0.5)))
+    """Bus params 'host', 'port', 'timeout_s'; ValueError naming the parameter when unusable."""
+    host = str(params.get('host', '127.0.0.1')).strip()
+    if not host:
+        raise ValueError("host: '' (allowed: an IP address or host name of the Modbus server)")
+    try:
+        port = int(params.get('port', 502))
+    except (TypeError, ValueError):
+        port = 0
+    if not 1 <= port <= 65535:
+        raise ValueError(f"port: {params.get('port')!r} (allowed: a TCP port 1..65535)")
+    return ModbusTcpBus(host=host, port=port, timeout_s=float(params.get('timeout_s', 0.5)))

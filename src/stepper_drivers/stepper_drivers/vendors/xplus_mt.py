@@ -3,11 +3,16 @@
 Register numbers, bit meanings and timings come from the manual `rta_xplus_mt_modbus_tcp.txt`
 (§12 drive sub-states and T13/T14, §13 registers, App.1); the map lives in `xplus_mt_map.py` and
 the CiA 402 state machine in `cia402.py`. No rclpy.
+
+Operations that wait (enable, disable, fault_reset, move_to, set_velocity, start_homing,
+save_params) are step-wise (`drive.Steps`): they yield between transactions, so the bus owner
+serves the other drives meanwhile. connect, read_state and stop are one short burst each.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import time
 from typing import Any, Mapping, Sequence
 
@@ -16,9 +21,9 @@ from ..cia402 import (CW_BIT_CHANGE_SET_IMMEDIATELY, CW_BIT_HALT, CW_BIT_NEW_SET
                       CW_ENABLE_OPERATION, SW_BIT_FOLLOWING_ERROR, SW_BIT_INTERNAL_LIMIT,
                       SW_BIT_TARGET_REACHED, SW_BIT_VOLTAGE_ENABLED, SW_BIT_WARNING,
                       SW_BIT_ZERO_SPEED)
-from ..drive import (Bus, Drive, DriveError, DriveState, Homing, HomingState, LinkError, Motion,
-                     ParamSpec, State, Vendor, register_type)
-from ..protocol.modbus_tcp import ModbusTcpBus, make_bus as make_tcp_bus
+from ..drive import (Bus, Drive, DriveError, DriveState, Homing, HomingState, IdentityError,
+                     Motion, ParamSpec, State, Steps, Vendor, register_type)
+from ..protocol.modbus_tcp import ModbusExceptionError, ModbusTcpBus, make_bus as make_tcp_bus
 from . import xplus_mt_map as xm
 
 logger = logging.getLogger(__name__)
@@ -29,6 +34,8 @@ REG = xm.REGISTERS
 # read as filler); if the drive refuses holes, SPLIT_READS (3 requests) is used instead.
 STATE_BLOCK = (1001, 21)
 SPLIT_READS = ((1001, 2), (1004, 8), (1020, 2))
+# 1081..1097 have no hole: step revolution (identity), input config, brake delays, watchdog.
+SETTINGS_BLOCK = (1081, 17)
 
 CW_SW_DELAY_S = 0.012          # §13 "Register 1001" note: >= 12 ms before checking the SW
 SETTLE_MIN_S = 0.2             # §12 note after transition 16: ~50-200 ms settling, current on
@@ -38,11 +45,16 @@ FAULT_RESET_TIMEOUT_S = 1.0
 HANDSHAKE_TIMEOUT_S = 0.5
 MODE_SWITCH_TIMEOUT_S = 0.5
 
+# Drive-side watchdog (§13 "Register 1097": no Modbus read or write within the timeout -> Fault,
+# current off). 1 s: 50 polls at the default 50 Hz, and more than a lost reply (timeout_s 0.5 s)
+# plus a quick reconnect or a scheduling stall of a loaded host, so only a master that is really
+# gone trips it; a running axis still stops about 1 s after its master died.
+WATCHDOG_MS_DEFAULT = 1000
+WATCHDOG_MIN_MS = 100          # §13 "Register 1097": 100÷32000 ms (0 = off)
+WATCHDOG_MIN_POLLS = 5         # the watchdog must span at least this many poll periods
+
 _SIMPLE_INT_TYPES = ('u16', 'i16', 'u32', 'i32')
-
-
-def _int(value: float) -> int:
-    return int(round(value))
+_NO_SUCH_REGISTER = (0x01, 0x02)   # ILLEGAL FUNCTION / ILLEGAL DATA ADDRESS
 
 
 class XplusMtDrive(Drive):
@@ -56,6 +68,8 @@ class XplusMtDrive(Drive):
         self.unit_id = int(params.get('unit_id', 1))
         self.address = self.unit_id
         self.word_order = str(params.get('word_order', 'little'))
+        self.watchdog_ms = int(params.get('watchdog_ms', WATCHDOG_MS_DEFAULT))
+        self.input_config = int(params.get('input_config', -1))
         self.cia = cia402.Cia402Device(self._read_statusword, self._write_controlword,
                                        min_delay_s=CW_SW_DELAY_S, name=name)
         self._split_reads = False
@@ -65,6 +79,7 @@ class XplusMtDrive(Drive):
         self._last_pos: tuple[int, float] | None = None
         self._last_velocity = 0.0
         self._was_enabled = False
+        self._watchdog_armed = False
 
     # ------------------------------------------------------------------ register helpers
     def _read_words(self, address: int, count: int) -> list[int]:
@@ -78,6 +93,17 @@ class XplusMtDrive(Drive):
         if not reg.accepts(value):
             raise DriveError(f'{what}{value} is outside {reg} range {reg.range_text()}'
                              + (f' {reg.unit}' if reg.unit and not reg.allowed else ''))
+
+    def _checked(self, name: str, value: float, what: str) -> int:
+        """`value` rounded to the register's integer, refused (naming the register and its
+        range) when it does not fit; nothing is sent."""
+        reg = REG[name]
+        if isinstance(value, float) and not math.isfinite(value):
+            raise DriveError(f'{what}{value} is not a number for {reg} (range '
+                             f'{reg.range_text()})')
+        number = int(round(value))
+        self._check(reg, number, what)
+        return number
 
     def _write(self, *pairs: tuple[str, int], what: str = '') -> None:
         """Write registers; contiguous ones (in the order given) go in one FC16."""
@@ -101,24 +127,60 @@ class XplusMtDrive(Drive):
     def _write_controlword(self, cw: int) -> None:
         self.mb.write_registers(self.unit_id, 1040, [cw], single=True)
 
-    def _prefix(self) -> str:
-        return f'{self.name}: '
-
     # ------------------------------------------------------------------ life cycle
+    def _identity_read(self, address: int, count: int) -> list[int]:
+        """A read at connect; a device without the register is not an X-PLUS MT."""
+        try:
+            return self._read_words(address, count)
+        except ModbusExceptionError as exc:
+            if exc.code not in _NO_SUCH_REGISTER:
+                raise
+            reg = xm.BY_ADDRESS[address]
+            raise IdentityError(
+                f'{reg}: the device at unit {self.unit_id} has no such register ({exc}); every '
+                f'X-PLUS MT has it (App.1): not an X-PLUS MT') from exc
+
+    def _identity_write(self, name: str, value: int, param: str) -> None:
+        """A setting written at connect; a refusal means the drive is not what the parameter
+        describes (e.g. input_config with the S4-only bit 7 on a B4)."""
+        try:
+            self._write((name, value), what=f'drives.{self.name}.{param}: ')
+        except ModbusExceptionError as exc:
+            raise IdentityError(f'drives.{self.name}.{param}: the drive refuses {value} in '
+                                f'{REG[name]} ({exc})') from exc
+
     def connect(self) -> dict[str, str]:
-        order_value = self._read_words(1162, 1)[0]
+        """Identity checks (what the manual fixes), then the node's settings: input config
+        (parameter input_config, RAM only) and the drive-side watchdog 1097 (watchdog_ms)."""
+        order_value = self._identity_read(1162, 1)[0]
         drive_order = xm.WORD_ORDER_BY_1162.get(order_value)
+        if drive_order is None:
+            raise IdentityError(
+                f'LITTLE_ENDIAN_BIG_ENDIAN (1162) reads {order_value}; an X-PLUS MT holds 1 '
+                f'(little) or 0 (big) there (§13 "Register 1162"): not an X-PLUS MT')
         if drive_order != self.word_order:
-            raise DriveError(
+            raise IdentityError(
                 f'word order mismatch: register LITTLE_ENDIAN_BIG_ENDIAN (1162) reads '
-                f'{order_value} ({drive_order or "not 0/1"}), but the word_order parameter is '
+                f'{order_value} ({drive_order}), but the word_order parameter is '
                 f"'{self.word_order}' (1162 = {xm.REGISTER_1162_BY_WORD_ORDER[self.word_order]})"
                 f'; set word_order to match the drive')
-        words = self._read_words(1152, 8)          # 1152..1159 identification (T15)
+        words = self._identity_read(1152, 8)          # 1152..1159 identification (T15)
         sw_ver, product, hw_ver, serial = (
             xm.decode32(words[i:i + 2], self.word_order, signed=False) for i in (0, 2, 4, 6))
-        settle_ms = self._read('BRAKE_DELAY_AZIO_READY')
-        self._settle_s = max(SETTLE_MIN_S, settle_ms / 1000.0)
+        start, count = SETTINGS_BLOCK
+        settings = dict(zip(range(start, start + count), self._identity_read(start, count)))
+        if settings[1081] != xm.STEPS_PER_REV:
+            raise IdentityError(
+                f'STEP_REVOLUTION (1081) reads {settings[1081]}; an X-PLUS MT has '
+                f'{xm.STEPS_PER_REV} only (§13 "Register 1081"): not an X-PLUS MT')
+        self._settle_s = max(SETTLE_MIN_S, settings[1096] / 1000.0)
+        input_config = settings[1088]
+        if 0 <= self.input_config != input_config:
+            self._identity_write('INPUT_CONFIG', self.input_config, 'input_config')
+            input_config = self.input_config
+        if settings[1097] != self.watchdog_ms:
+            self._identity_write('COUNTER_WATCHDOG', self.watchdog_ms, 'watchdog_ms')
+        self._watchdog_armed = self.watchdog_ms > 0
         self.cia.controlword = None
         self._homed = False
         self._last_pos = None
@@ -132,8 +194,24 @@ class XplusMtDrive(Drive):
             'software_version': str(sw_ver), 'hardware_version': str(hw_ver),
             'unit_id': str(self.unit_id),
             'word_order': f'{self.word_order} (1162 = {order_value})',
+            'input_config': f'0x{input_config:04X} (1088)',
+            'watchdog': (f'{self.watchdog_ms} ms (1097)' if self.watchdog_ms
+                         else 'off (1097 = 0)'),
             'statusword': f'0x{sw:04X}', 'state': cia402.decode_state(sw).value,
         }
+
+    def close(self) -> None:
+        """The node is done with this drive (orderly shutdown): disarm the drive watchdog, so a
+        drive left enabled on purpose (disable_on_shutdown false) keeps holding. A node that dies
+        never gets here: then the watchdog faults the drive (current off)."""
+        if not self._watchdog_armed or not self.mb.is_open:
+            return
+        try:
+            self._write(('COUNTER_WATCHDOG', 0))
+            self._watchdog_armed = False
+        except DriveError as exc:
+            logger.warning('%s: could not disarm the drive watchdog (1097 := 0): %s', self.name,
+                           exc)
 
     def _read_state_words(self) -> list[int]:
         """Words 1001..1021 (holes as read, or 0 with split reads)."""
@@ -141,10 +219,8 @@ class XplusMtDrive(Drive):
         if not self._split_reads:
             try:
                 return self._read_words(start, count)
-            except LinkError:
-                raise
-            except DriveError as exc:
-                if 'ILLEGAL DATA ADDRESS' not in str(exc):
+            except ModbusExceptionError as exc:
+                if exc.code != 0x02:        # ILLEGAL DATA ADDRESS: the holes
                     raise
                 logger.info('%s: block read 1001..1021 refused (%s); using 3 reads', self.name,
                             exc)
@@ -217,7 +293,7 @@ class XplusMtDrive(Drive):
         return f'{text} (0x{code:04X})' if code else 'Fault with error code 0x0000'
 
     # ------------------------------------------------------------------ power stage
-    def enable(self) -> None:
+    def enable(self) -> Steps[None]:
         sw = self._read_statusword()
         state = cia402.decode_state(sw)
         if state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
@@ -227,21 +303,25 @@ class XplusMtDrive(Drive):
         if state == State.OPERATION_ENABLED:
             self._was_enabled = True
             return
+        yield 0.0
         if state != State.QUICK_STOP_ACTIVE:
             # Nothing may move: Target Position := Position Actual Value, then Profile Position.
             actual = self._read('POSITION_ACTUAL_VALUE')
             self._write(('TARGET_POSITION', actual))
-            self._set_mode(xm.MODE_PROFILE_POSITION)
+            yield 0.0
+            yield from self._set_mode(xm.MODE_PROFILE_POSITION)
         if state in (State.SWITCH_ON_DISABLED, State.READY_TO_SWITCH_ON):
-            sw = self.cia.bring_to(State.READY_TO_SWITCH_ON, ENABLE_TIMEOUT_S)
+            sw = yield from self.cia.bring_to(State.READY_TO_SWITCH_ON, ENABLE_TIMEOUT_S)
             if not sw & SW_BIT_VOLTAGE_ENABLED:
                 raise DriveError(
                     f'enable: the power stage has no high voltage: {cia402.describe(sw)} with '
                     f'Voltage Enabled (status word bit 4) = 0; Switch On needs HV present at '
                     f'least 500 ms before (§12 transition 3)')
+            yield 0.0
         try:
-            self.cia.bring_to(State.OPERATION_ENABLED, ENABLE_TIMEOUT_S)
+            yield from self.cia.bring_to(State.OPERATION_ENABLED, ENABLE_TIMEOUT_S)
         except DriveError as exc:
+            yield 0.0
             sw = self._read_statusword()
             if cia402.decode_state(sw) == State.READY_TO_SWITCH_ON:
                 hv = 'present' if sw & SW_BIT_VOLTAGE_ENABLED else 'absent (bit 4 = 0)'
@@ -251,108 +331,116 @@ class XplusMtDrive(Drive):
         self._current_on_at = time.monotonic()
         self._was_enabled = True
 
-    def disable(self) -> None:
+    def disable(self) -> Steps[None]:
         sw = self._read_statusword()
         if cia402.decode_state(sw) in (State.FAULT, State.FAULT_REACTION_ACTIVE):
             return        # current is already off; leaving Fault needs fault_reset
-        self.cia.bring_to(State.SWITCH_ON_DISABLED, DISABLE_TIMEOUT_S)
+        yield 0.0
+        yield from self.cia.bring_to(State.SWITCH_ON_DISABLED, DISABLE_TIMEOUT_S)
         self._current_on_at = None
         self._was_enabled = False
 
     # ------------------------------------------------------------------ motion
     def _require_enabled(self, what: str) -> int:
-        sw = self._read_statusword()
+        """One FC03 of 1001..1002: the drive must be in OPERATION ENABLED, checked on the wire;
+        returns Modes of Operation Display (1002), so no second read is needed for the mode."""
+        sw, mode = self._read_words(1001, 2)
         if cia402.decode_state(sw) != State.OPERATION_ENABLED:
             raise DriveError(f'{what}: drive is in {cia402.describe(sw)}, not OPERATION '
                              f'ENABLED; enable first')
-        return sw
+        return mode - 0x10000 if mode & 0x8000 else mode
 
-    def _wait_settled(self) -> None:
+    def _wait_settled(self) -> Steps[None]:
         """§12 note: New Set Points sent before the motor settled (~50-200 ms, and 1096 Brake
         Delay Azio Ready) after current on "can cause a loss of synchronism"."""
         if self._current_on_at is None:
             return
         rest = self._current_on_at + self._settle_s - time.monotonic()
         if rest > 0:
-            time.sleep(rest)
+            yield rest
 
-    def _mode(self) -> int:
-        return self._read('MODE_OF_OPERATION_DISPLAY')
-
-    def _set_mode(self, mode: int) -> None:
+    def _set_mode(self, mode: int) -> Steps[None]:
         self._write(('MODE_OF_OPERATION', mode))
         deadline = time.monotonic() + MODE_SWITCH_TIMEOUT_S
-        while self._mode() != mode:
+        while True:
+            yield cia402.Cia402Device.POLL_S
+            shown = self._read('MODE_OF_OPERATION_DISPLAY')
+            if shown == mode:
+                yield 0.0       # the caller's next transaction in a step of its own
+                return
             if time.monotonic() > deadline:
                 raise DriveError(f'MODE_OF_OPERATION (1041) := {mode} not taken: '
-                                 f'MODE_OF_OPERATION_DISPLAY (1002) reads {self._mode()}')
-            time.sleep(cia402.Cia402Device.POLL_S)
+                                 f'MODE_OF_OPERATION_DISPLAY (1002) reads {shown}')
 
-    def _ensure_mode(self, mode: int, what: str) -> None:
-        current = self._mode()
+    def _ensure_mode(self, mode: int, what: str, current: int) -> Steps[None]:
+        """`current`: 1002 as read by _require_enabled just before (the step that read it)."""
+        yield 0.0
         if current == mode:
             return
         state = self.read_state()
         if state.moving:
             raise DriveError(f'{what}: the drive is moving in {state.mode or f"mode {current}"};'
                              f' stop first (modes change at standstill only)')
-        self._set_mode(mode)
+        yield 0.0
+        yield from self._set_mode(mode)
         self.cia.controlword = None
 
-    def _base_cw(self) -> int:
-        """Enable Operation plus Change Set Immediately, Halt released in two steps."""
+    def _release_halt(self) -> Steps[None]:
+        """A Halt we commanded is released on its own first: a halt release and a new set point
+        in one write is not described by the manual (§13 "Register 1040" bit 8)."""
         cw = self.cia.controlword
-        base = CW_ENABLE_OPERATION | CW_BIT_CHANGE_SET_IMMEDIATELY
         if cw is not None and cw & CW_BIT_HALT:
-            # Release Halt on its own first: a halt release and a new set point in one write
-            # is not described by the manual (§13 "Register 1040" bit 8).
             self.cia.write(cw & ~(CW_BIT_HALT | CW_BIT_NEW_SET_POINT))
-        return base
+            yield 0.0
 
-    def _motion_values(self, motion: Motion, what: str) -> tuple[int, int, int]:
-        velocity = _int(abs(motion.velocity_steps_s))
-        accel = _int(motion.acceleration_steps_s2)
-        decel = _int(motion.deceleration_steps_s2)
-        self._check(REG['PROFILE_ACCELERATION'], accel, f'{what}: acceleration ')
-        self._check(REG['PROFILE_DECELERATION'], decel, f'{what}: deceleration ')
-        return velocity, accel, decel
+    def _motion_values(self, motion: Motion, what: str) -> tuple[float, int, int]:
+        accel = self._checked('PROFILE_ACCELERATION', motion.acceleration_steps_s2,
+                              f'{what}: acceleration ')
+        decel = self._checked('PROFILE_DECELERATION', motion.deceleration_steps_s2,
+                              f'{what}: deceleration ')
+        return motion.velocity_steps_s, accel, decel
 
-    def move_to(self, target_steps: int, motion: Motion) -> None:
-        self._require_enabled('move_to')
+    def move_to(self, target_steps: int, motion: Motion) -> Steps[None]:
+        # Every value is checked against its register before anything is read or written.
         velocity, accel, decel = self._motion_values(motion, 'move_to')
+        velocity = self._checked('PROFILE_VELOCITY', abs(velocity), 'move_to: velocity ')
         if velocity == 0:
             raise DriveError('move_to: velocity 0 is not accepted by PROFILE_VELOCITY (1044) '
                              'for a move (§13 "Multi-Set-Point Mode" limit 3)')
-        self._check(REG['PROFILE_VELOCITY'], velocity, 'move_to: velocity ')
-        self._check(REG['TARGET_POSITION'], int(target_steps), 'move_to: target ')
-        self._ensure_mode(xm.MODE_PROFILE_POSITION, 'move_to')
+        target = self._checked('TARGET_POSITION', target_steps, 'move_to: target ')
+        mode = self._require_enabled('move_to')    # one FC03 for the state and the mode
+        yield from self._ensure_mode(xm.MODE_PROFILE_POSITION, 'move_to', mode)
         # 1042..1047 contiguous: one FC16 for target, velocity and acceleration (§11: a 32-bit
         # value is committed when its second word is written; all pairs complete in one request).
-        self._write(('TARGET_POSITION', int(target_steps)), ('PROFILE_VELOCITY', velocity),
+        self._write(('TARGET_POSITION', target), ('PROFILE_VELOCITY', velocity),
                     ('PROFILE_ACCELERATION', accel), ('PROFILE_DECELERATION', decel))
-        self._wait_settled()
-        base = self._base_cw()
-        self.cia.start_set_point(base, relative=False, immediate=True,
-                                 timeout_s=HANDSHAKE_TIMEOUT_S)
+        yield 0.0
+        yield from self._wait_settled()
+        yield from self._release_halt()
+        yield from self.cia.start_set_point(
+            CW_ENABLE_OPERATION | CW_BIT_CHANGE_SET_IMMEDIATELY, relative=False, immediate=True,
+            timeout_s=HANDSHAKE_TIMEOUT_S)
 
-    def set_velocity(self, velocity_steps_s: float, motion: Motion) -> None:
-        self._require_enabled('set_velocity')
+    def set_velocity(self, velocity_steps_s: float, motion: Motion) -> Steps[None]:
         _, accel, decel = self._motion_values(motion, 'set_velocity')
-        velocity = _int(velocity_steps_s)     # A8: signed, negative = reverse
-        self._check(REG['TARGET_VELOCITY'], velocity, 'set_velocity: ')
-        self._ensure_mode(xm.MODE_PROFILE_VELOCITY, 'set_velocity')
+        # A8: signed, negative = reverse
+        velocity = self._checked('TARGET_VELOCITY', velocity_steps_s, 'set_velocity: ')
+        mode = self._require_enabled('set_velocity')
+        yield from self._ensure_mode(xm.MODE_PROFILE_VELOCITY, 'set_velocity', mode)
         self._write(('PROFILE_ACCELERATION', accel), ('TARGET_VELOCITY', velocity),
                     ('PROFILE_DECELERATION', decel))
         cw = self.cia.controlword
         running = cw is not None and cw & CW_BIT_NEW_SET_POINT and not cw & CW_BIT_HALT
         if not running:
             # A10: PV follows Target Velocity in OE after a bit-4 rising edge (bit 4 held).
-            self._wait_settled()
+            yield 0.0
+            yield from self._wait_settled()
             self.cia.write(CW_ENABLE_OPERATION)
-            time.sleep(CW_SW_DELAY_S)
+            yield CW_SW_DELAY_S
             self.cia.write(CW_ENABLE_OPERATION | CW_BIT_NEW_SET_POINT)
 
     def stop(self, quick: bool = False) -> None:
+        """One FC03 and at most one FC06: the urgent path waits for nothing."""
         sw = self._read_statusword()
         state = cia402.decode_state(sw)
         if quick:
@@ -366,44 +454,51 @@ class XplusMtDrive(Drive):
             cw = CW_ENABLE_OPERATION
         self.cia.write(cw | CW_BIT_HALT)     # decelerates with the mode's deceleration
 
-    def start_homing(self, homing: Homing) -> str:
+    def start_homing(self, homing: Homing) -> Steps[str]:
         method = int(homing.method)
         if method not in xm.HOMING_METHODS:
             raise DriveError(f'homing.method: {method} is not a homing method of the X-PLUS MT '
                              f'(allowed: {", ".join(map(str, xm.HOMING_METHODS))})')
-        self._require_enabled('home')
+        # all values checked against their registers before anything is read or written
+        writes: list[tuple[str, int]] = [('HOMING_METHOD', method)]
+        if method not in xm.HOMING_METHODS_CURRENT_POSITION:   # 35/37 do not move
+            writes += [
+                ('HOMING_SPEED_SEARCH_SWITCH', self._checked(
+                    'HOMING_SPEED_SEARCH_SWITCH', homing.speed_search_steps_s,
+                    'home: homing.speed_search ')),
+                ('HOMING_SPEED_SEARCH_ZERO', self._checked(
+                    'HOMING_SPEED_SEARCH_ZERO', homing.speed_zero_steps_s,
+                    'home: homing.speed_zero ')),
+                ('HOMING_ACCELERATION', self._checked(
+                    'HOMING_ACCELERATION', homing.acceleration_steps_s2,
+                    'home: homing.acceleration '))]
+        writes.append(('HOMING_OFFSET', self._checked('HOMING_OFFSET', homing.offset_steps,
+                                                      'home: homing.offset ')))
+        mode = self._require_enabled('home')
         if method in xm.HOMING_METHODS_HOME_SWITCH:
-            input_config = self._read('INPUT_CONFIG')
+            # 1085..1088 in one FC03: following error reaction and input config
+            reaction, _, _, input_config = self._read_words(1085, 4)
             if input_config & 0x01:
                 raise DriveError(
                     f'home: method {method} needs the home switch on I0, but INPUT_CONFIG '
                     f'(1088) = {input_config} has bit 0 (IC0) = 1, i.e. I0 is a general-purpose '
-                    f'input; write 1088 with bit 0 = 0 (proximity input) and save_params')
-        if method in xm.HOMING_METHODS_NEED_INDEX and \
-                self._read('FOLLOWING_ERROR_REACTION_CODE') == 17:
-            raise DriveError(f'home: method {method} uses the encoder index, but '
-                             f'FOLLOWING_ERROR_REACTION_CODE (1085) = 17 (motor without encoder)')
-        writes: list[tuple[str, int]] = [('HOMING_METHOD', method)]
-        labels = {'HOMING_OFFSET': 'homing.offset'}
-        if method not in xm.HOMING_METHODS_CURRENT_POSITION:   # 35/37 do not move
-            writes += [('HOMING_SPEED_SEARCH_SWITCH', _int(homing.speed_search_steps_s)),
-                       ('HOMING_SPEED_SEARCH_ZERO', _int(homing.speed_zero_steps_s)),
-                       ('HOMING_ACCELERATION', _int(homing.acceleration_steps_s2))]
-            labels.update(HOMING_SPEED_SEARCH_SWITCH='homing.speed_search',
-                          HOMING_SPEED_SEARCH_ZERO='homing.speed_zero',
-                          HOMING_ACCELERATION='homing.acceleration')
-        writes.append(('HOMING_OFFSET', int(homing.offset_steps)))
-        for reg_name, value in writes:      # all checked before anything is written
-            self._check(REG[reg_name], value, f'home: {labels.get(reg_name, "method")} ')
-        self._ensure_mode(xm.MODE_HOMING, 'home')
+                    f'input; set drives.{self.name}.input_config with bit 0 = 0 (e.g. 14: I0 '
+                    f'proximity input), or write 1088 and save_params')
+            if method in xm.HOMING_METHODS_NEED_INDEX and reaction == 17:
+                raise DriveError(f'home: method {method} uses the encoder index, but '
+                                 f'FOLLOWING_ERROR_REACTION_CODE (1085) = 17 (motor without '
+                                 f'encoder)')
+        yield from self._ensure_mode(xm.MODE_HOMING, 'home', mode)
         self._write(*writes)
         self._homed = False
-        self._wait_settled()
-        base = self._base_cw() & ~CW_BIT_CHANGE_SET_IMMEDIATELY
+        yield 0.0
+        yield from self._wait_settled()
+        yield from self._release_halt()
+        base = CW_ENABLE_OPERATION
         self.cia.write(base)                         # bit 4 low, so the next write is an edge
-        time.sleep(CW_SW_DELAY_S)
+        yield CW_SW_DELAY_S
         self.cia.write(base | CW_BIT_NEW_SET_POINT)  # homing start, held high while homing
-        met, sw = self.cia.wait_for(
+        met, sw = yield from self.cia.wait_for(
             lambda s: cia402.homing_state(s) != HomingState.IDLE, HANDSHAKE_TIMEOUT_S)
         if not met:
             raise DriveError(f'home: homing did not start (status word bits 13/12/10 still '
@@ -411,24 +506,43 @@ class XplusMtDrive(Drive):
         return ''
 
     # ------------------------------------------------------------------ maintenance
-    def fault_reset(self) -> str:
-        sw = self.cia.fault_reset(FAULT_RESET_TIMEOUT_S)
+    def fault_reset(self) -> Steps[str]:
+        sw = yield from self.cia.fault_reset(FAULT_RESET_TIMEOUT_S)
         state = cia402.decode_state(sw)
         if state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
+            yield 0.0
             return (f'{self._error_text(self._read("ERROR_CODE"))}; still in '
                     f'{cia402.describe(sw)}: the cause is still present')
         self._was_enabled = False
         return ''
 
     def save_params(self) -> str:
-        self.mb.write_registers(self.unit_id, xm.SAVE_PARAMS_REGISTER,
-                                [xm.SAVE_PARAMS_SIGNATURE], single=True)
-        echo = self._read_words(xm.SAVE_PARAMS_REGISTER, 1)[0]
+        """One burst, not step-wise: the watchdog is off in between (see below), and a step
+        boundary there could leave it off if the operation were cut short."""
+        # 1097 is storable (App.1 '**'), but the node arms it at every connect: stored, it would
+        # fault every drive powered up without a master. So the flash gets 1097 = 0 and RAM gets
+        # the node's value back right after the signature.
+        if self._watchdog_armed:
+            self._write(('COUNTER_WATCHDOG', 0))
+        try:
+            self.mb.write_registers(self.unit_id, xm.SAVE_PARAMS_REGISTER,
+                                    [xm.SAVE_PARAMS_SIGNATURE], single=True)
+            echo = self._read_words(xm.SAVE_PARAMS_REGISTER, 1)[0]
+        except ModbusExceptionError:
+            if self._watchdog_armed:     # refused: the link is fine, re-arm before reporting
+                self._write(('COUNTER_WATCHDOG', self.watchdog_ms))
+            raise
+        # (after a LinkError the node reconnects, and connect() arms the watchdog again)
+        watchdog = ''
+        if self._watchdog_armed:
+            self._write(('COUNTER_WATCHDOG', self.watchdog_ms))
+            watchdog = (f'; COUNTER_WATCHDOG (1097) was stored as 0 (off) and is armed again '
+                        f'({self.watchdog_ms} ms) in RAM')
         return (f'signature 0x{xm.SAVE_PARAMS_SIGNATURE:04X} written to SAVE_ALL_PARAMETERS '
                 f'(1260) and acknowledged by the drive (1260 now reads 0x{echo:04X}); the '
                 f'manual gives no completion flag, so the save itself cannot be verified over '
                 f'Modbus; keep the 24 V logic supply on for more than '
-                f'{xm.SAVE_HOLD_24V_S:g} s (§13 "Register 1260" Note1)')
+                f'{xm.SAVE_HOLD_24V_S:g} s (§13 "Register 1260" Note1){watchdog}')
 
     def _raw_register(self, address: str, data_type: str, write: bool) -> xm.Register:
         try:
@@ -482,19 +596,36 @@ class XplusMtDrive(Drive):
 
 # ---------------------------------------------------------------------- vendor description
 PARAMS = (
-    ParamSpec('host', '127.0.0.1', 'IP address of the drive (Modbus TCP server)', scope='bus'),
-    ParamSpec('port', 502, 'TCP port of the drive (§11 "TCP Port": 502)', scope='bus',
-              min_value=1, max_value=65535),
+    ParamSpec('host', '127.0.0.1', 'IP address of the drive (Modbus TCP server); the drives '
+              'that set no drives.<name>.host of their own', scope='bus'),
+    ParamSpec('port', 502, 'TCP port of the drive (§11 "TCP Port": 502); the drives that set '
+              'no drives.<name>.port of their own', scope='bus', min_value=1, max_value=65535),
     ParamSpec('word_order', 'little', "32-bit word order, must match register 1162: 'little' "
               "(1162 = 1, default, low word at the lower address) or 'big' (1162 = 0)",
               scope='bus', choices=xm.WORD_ORDERS),
     ParamSpec('unit_id', 1, 'Modbus unit identifier of the drive (the manual does not fix it)',
               scope='drive', min_value=0, max_value=255),
+    # Every X-PLUS MT is its own Modbus TCP server: drives on other hosts get a link of their own
+    # (Vendor.drive_bus_params); drives with equal host and port share one.
+    ParamSpec('host', '', "IP address of this drive when it is not the bus-level host ('' = "
+              'the bus-level host)', scope='drive'),
+    ParamSpec('port', 0, 'TCP port of this drive when it is not the bus-level port (0 = the '
+              'bus-level port)', scope='drive', min_value=0, max_value=65535),
+    ParamSpec('watchdog_ms', WATCHDOG_MS_DEFAULT, 'drive-side watchdog, register 1097, written at '
+              'connect: with no Modbus request (from any client) for this long the drive goes to '
+              'Fault, current off (§13 "Register 1097"); 0 = off, else 100..32000 ms [ms]',
+              scope='drive', min_value=0, max_value=32000),
+    ParamSpec('input_config', -1, 'Input Config 1088 written at connect (RAM; save_params stores '
+              'it): bit 0 = 0 makes I0 the home proximity input, bits 1/2 = 0 make I1/I2 limit '
+              'switches, bit 3 = 0 I3 the touch probe (§13 "Register 1088"; factory 15: all '
+              'general purpose); -1 = leave the drive as it is', scope='drive', min_value=-1,
+              max_value=xm.REGISTERS['INPUT_CONFIG'].max),
 )
 
 
 def make_bus(params: Mapping[str, Any]) -> ModbusTcpBus:
-    """Bus params 'host', 'port' and the common 'timeout_s'."""
+    """Bus params 'host', 'port' and the common 'timeout_s'. For a drive with its own host or
+    port the node passes the bus params with the drive's non-empty values in their place."""
     return make_tcp_bus(params)
 
 
@@ -520,6 +651,27 @@ def make_drive(bus: Bus, name: str, params: Mapping[str, Any]) -> XplusMtDrive:
     if float(steps) != xm.STEPS_PER_REV:
         raise ValueError(f'{prefix}steps_per_rev: {steps:g} is not the X-PLUS MT resolution '
                          f'(allowed: {xm.STEPS_PER_REV}, fixed by STEP_REVOLUTION (1081))')
+    watchdog_ms = params.get('watchdog_ms', WATCHDOG_MS_DEFAULT)
+    if not isinstance(watchdog_ms, int) or not (
+            watchdog_ms == 0 or WATCHDOG_MIN_MS <= watchdog_ms <= REG['COUNTER_WATCHDOG'].max):
+        raise ValueError(f'{prefix}watchdog_ms: {watchdog_ms!r} (allowed: 0 = off, or '
+                         f'{WATCHDOG_MIN_MS}..{REG["COUNTER_WATCHDOG"].max} ms, §13 "Register '
+                         f'1097")')
+    rate = float(params.get('publish_rate_hz', 50.0))
+    if watchdog_ms and watchdog_ms / 1000.0 < WATCHDOG_MIN_POLLS / rate:
+        raise ValueError(f'{prefix}watchdog_ms: {watchdog_ms} ms is less than '
+                         f'{WATCHDOG_MIN_POLLS} poll periods at publish_rate_hz {rate:g} (the '
+                         f'polls feed the drive watchdog); allowed: >= '
+                         f'{math.ceil(WATCHDOG_MIN_POLLS * 1000.0 / rate)} ms, or 0 = off')
+    input_config = params.get('input_config', -1)
+    if not isinstance(input_config, int) or not (
+            input_config == -1 or REG['INPUT_CONFIG'].accepts(input_config)):
+        raise ValueError(f'{prefix}input_config: {input_config!r} (allowed: -1 = leave the drive '
+                         f'as it is, or INPUT_CONFIG (1088) {REG["INPUT_CONFIG"].range_text()})')
+    if method in xm.HOMING_METHODS_HOME_SWITCH and input_config >= 0 and input_config & 0x01:
+        raise ValueError(f'{prefix}homing.method: {method} needs the home switch on I0, but '
+                         f'{prefix}input_config {input_config} has bit 0 = 1 (I0 general '
+                         f'purpose, §13 "Register 1088"); clear bit 0 (e.g. 14)')
     return XplusMtDrive(bus, name, params)
 
 
@@ -530,4 +682,5 @@ VENDOR = Vendor(
     make_drive=make_drive,
     # float: the common parameter steps_per_rev is a double (params.py)
     drive_defaults={'steps_per_rev': float(xm.STEPS_PER_REV), 'homing.method': 35},
+    drive_bus_params=('host', 'port'),
 )
