@@ -12,12 +12,13 @@ import time
 
 import can
 import pytest
-from stepper_drivers.drive import DriveError, Homing, HomingState, LinkError, Motion, State
+from stepper_drivers.drive import (complete, DriveError, Homing, HomingState, IdentityError,
+                                   LinkError, Motion, State)
 from stepper_drivers.protocol.socketcand_broker import SocketcandBroker
 from stepper_drivers.tools.processes import wait_for as wait
 from stepper_drivers.vendors import vector_step as vs
 from stepper_drivers.vendors import vector_step_map as vm
-from stepper_sim.vector_step_sim import NodeConfig, VectorStepSim
+from stepper_sim.vector_step_sim import NodeConfig, SYNC_CONFIRM_S, VectorStepSim
 
 logging.getLogger('can.interfaces.socketcand.socketcand').setLevel(logging.ERROR)
 
@@ -59,6 +60,13 @@ class Monitor:
         wait(lambda: frame in self.since(mark), timeout_s, f'frame {frame} on the bus')
         return self.since(mark)
 
+    def barrier(self, bus):
+        """Wait until a frame the driver's bus sends now is recorded: the broker forwards each
+        sender's frames in order, so all it sent before are recorded too."""
+        start = len(self.frames)
+        bus.send(0x7E5, b'barrier')                 # LSS master COB-ID: no drive listens
+        wait(lambda: (0x7E5, b'barrier') in self.since(start), what='barrier frame')
+
     def catch_up(self, node_id=1, timeout_s=5.0):
         """Wait until two heartbeats of a node arrive after this call; the broker forwards in
         order, so every frame sent before the call has then been recorded (for 'not sent')."""
@@ -71,25 +79,28 @@ class Monitor:
 
 
 class Bench:
-    def __init__(self, tmp_path):
+    """Broker, simulator (axis1 = node 1 with a BLS, axis2 = node 2), a monitor, and the driver's
+    bus and drives; `over` changes driver parameters, `axis2` the second simulated drive."""
+
+    def __init__(self, tmp_path, axis2=None, **over):
         self.broker = SocketcandBroker(port=0, ready_delay_s=0.01)
         self.broker.start()
         self.sim = VectorStepSim([NodeConfig('axis1', 1, limit_neg_steps=-3200.0),
-                                  NodeConfig('axis2', 2)], port=self.broker.port,
+                                  axis2 or NodeConfig('axis2', 2)], port=self.broker.port,
                                  reboot_delay_s=0.02, storage_dir=str(tmp_path))
         self.monitor = Monitor(self.broker.port)
         self.sim.start()
-        self.bus = vs.make_bus(params(**{'can.port': self.broker.port}))
+        self.params = params(**{'can.port': self.broker.port, **over})
+        self.bus = vs.make_bus(self.params)
         self.bus.open()
-        self.drives = {name: vs.make_drive(self.bus, name, params(
-            node_id=node_id, **{'can.port': self.broker.port}))
-            for name, node_id in (('axis1', 1), ('axis2', 2))}
+        self.drives = {name: vs.make_drive(self.bus, name, {**self.params, 'node_id': node_id})
+                       for name, node_id in (('axis1', 1), ('axis2', 2))}
         for node in self.sim.nodes.values():      # both booted
             wait(lambda node=node: node.nmt_state == 0x7F)
 
     def connect(self, *names):
         for name in names or self.drives:
-            self.drives[name].connect()
+            complete(self.drives[name].connect())
         return self.drives[names[0]] if len(names) == 1 else self.drives
 
     def close(self):
@@ -99,8 +110,13 @@ class Bench:
         self.broker.stop()
 
 
+def snap(drive):
+    """One read_state(), run to its end (it may wait for the rest of a TxPDO burst)."""
+    return complete(drive.read_state())
+
+
 def settle(drive, timeout_s=5.0):
-    return wait(lambda: (lambda s: s if not s.moving else None)(drive.read_state()), timeout_s,
+    return wait(lambda: (lambda s: s if not s.moving else None)(snap(drive)), timeout_s,
                 'standstill')
 
 
@@ -127,14 +143,14 @@ def test_connect_configures_the_node_and_reads_state_from_pdos_only(bench):
     assert node._stored(vm.RPDO_COMMUNICATION + 3, 1) & vm.PDO_INVALID   # RxPDO4 off
     mark = bench.monitor.mark()
     for _ in range(20):
-        s = d.read_state()
+        s = snap(d)
     assert s.state == State.SWITCH_ON_DISABLED and not s.enabled and s.mode == 'PROFILE POSITION'
     bench.monitor.catch_up()
     assert not bench.monitor.since(mark, 0x601), 'read_state() must not use SDO'
 
 
 def test_identity(bench):
-    identity = bench.connect('axis1').connect()
+    identity = complete(bench.connect('axis1').connect())
     assert identity['vendor_id'] == '0x000000BC'
     assert identity['product_code'].endswith('(SMD5006)')
     assert identity['device_name'] == 'SMD50.06LIC' and identity['Rstpres'] == '16'
@@ -143,31 +159,31 @@ def test_identity(bench):
 def test_enable_keeps_the_position_then_moves_and_changes_target_immediately(bench):
     d = bench.connect('axis1')
     before = bench.sim.true_position_steps('axis1')
-    d.enable()
-    s = d.read_state()
+    complete(d.enable())
+    s = snap(d)
     assert s.state == State.OPERATION_ENABLED and s.enabled and not s.moving
     assert bench.sim.true_position_steps('axis1') == before
-    d.move_to(6400, MOTION)
+    complete(d.move_to(6400, MOTION))
     s = settle(d)
     assert s.position_steps == 6400 and s.target_reached
     assert bench.sim.true_position_steps('axis1') == pytest.approx(6400)
-    d.move_to(64000, MOTION)
-    wait(lambda: d.read_state().position_steps > 9000, what='moving')
-    d.move_to(1000, MOTION)                       # bit 5: change set immediately
+    complete(d.move_to(64000, MOTION))
+    wait(lambda: snap(d).position_steps > 9000, what='moving')
+    complete(d.move_to(1000, MOTION))                       # bit 5: change set immediately
     s = settle(d)
     assert s.position_steps == 1000
 
 
 def test_jog_reverses_and_stops_on_bit_4(bench):
     d = bench.connect('axis1')
-    d.enable()
-    d.set_velocity(6400.0, MOTION)                # 2 rev/s
-    s = wait(lambda: (lambda s: s if s.velocity_steps_s == 6400.0 else None)(d.read_state()))
+    complete(d.enable())
+    complete(d.set_velocity(6400.0, MOTION))                # 2 rev/s
+    s = wait(lambda: (lambda s: s if s.velocity_steps_s == 6400.0 else None)(snap(d)))
     assert s.mode == 'AEC VELOCITY (JOG)' and s.moving
-    d.set_velocity(-3200.0, MOTION)
-    wait(lambda: d.read_state().velocity_steps_s == -3200.0, what='reversed')
+    complete(d.set_velocity(-3200.0, MOTION))
+    wait(lambda: snap(d).velocity_steps_s == -3200.0, what='reversed')
     mark = bench.monitor.mark()
-    d.set_velocity(0.0, MOTION)
+    complete(d.set_velocity(0.0, MOTION))
     s = settle(d)
     assert s.enabled and s.velocity_steps_s == 0.0
     bench.monitor.catch_up()
@@ -176,9 +192,9 @@ def test_jog_reverses_and_stops_on_bit_4(bench):
 
 def test_stop_in_profile_position_uses_the_rcmdwr_stop_bit(bench):
     d = bench.connect('axis1')
-    d.enable()
-    d.move_to(320000, MOTION)
-    wait(lambda: d.read_state().position_steps > 3000, what='moving')
+    complete(d.enable())
+    complete(d.move_to(320000, MOTION))
+    wait(lambda: snap(d).position_steps > 3000, what='moving')
     mark = bench.monitor.mark()
     d.stop()
     bench.monitor.wait_seen(mark, (0x601, bytes.fromhex('2B 3B 20 01 08 00 00 00')))
@@ -188,27 +204,27 @@ def test_stop_in_profile_position_uses_the_rcmdwr_stop_bit(bench):
 
 def test_homing_on_bls_writes_the_raw_method_and_forces_the_offset(bench):
     d = bench.connect('axis1')
-    d.enable()
+    complete(d.enable())
     mark = bench.monitor.mark()
-    note = d.start_homing(Homing(-1, 500, 6400.0, 1600.0, 64000.0))
+    note = complete(d.start_homing(Homing(-1, 500, 6400.0, 1600.0, 64000.0)))
     assert 'BLS, negative direction' in note
     bench.monitor.wait_seen(mark, (0x601, bytes.fromhex('2F 98 60 00 FF 00 00 00')))
-    assert d.read_state().homing == HomingState.RUNNING
+    assert snap(d).homing == HomingState.RUNNING
     s = wait(lambda: (lambda s: s if s.homing != HomingState.RUNNING else None)(
-        d.read_state()), 10.0, 'homing result')
+        snap(d)), 10.0, 'homing result')
     assert s.homing == HomingState.ATTAINED and s.homed and s.mode == 'HOMING'
     raw = bench.sim.nodes['axis1'].axis.raw_position_steps
     assert s.position_steps == pytest.approx(500 + (raw + 3200), abs=1)   # BLS edge reads 500
-    d.move_to(3000, MOTION)                       # away from the BLS it stopped on
+    complete(d.move_to(3000, MOTION))                       # away from the BLS it stopped on
     assert settle(d).position_steps == 3000
 
 
 def test_homing_error_shows_the_emcy_text(bench):
     d = bench.connect('axis2')
-    d.enable()
+    complete(d.enable())
     d.write_register('0x2020:1', 'u32', 800)      # Rhmaxspc
-    d.start_homing(Homing(-1, 0, 16000.0, 1600.0, 160000.0))
-    s = wait(lambda: (lambda s: s if s.homing == HomingState.ERROR else None)(d.read_state()),
+    complete(d.start_homing(Homing(-1, 0, 16000.0, 1600.0, 160000.0)))
+    s = wait(lambda: (lambda s: s if s.homing == HomingState.ERROR else None)(snap(d)),
              5.0, 'homing error')
     assert not s.fault and s.enabled
     assert any('EMCY 0xFF02' in a and 'maximum travel for home exceeded' in a
@@ -217,51 +233,51 @@ def test_homing_error_shows_the_emcy_text(bench):
 
 def test_fault_emcy_text_and_the_manuals_reset_order(bench):
     d = bench.connect('axis1')
-    d.enable()
+    complete(d.enable())
     bench.sim.inject_fault('axis1', 'drive_fault', 1 << 6, 0)
-    s = wait(lambda: (lambda s: s if s.state == State.FAULT else None)(d.read_state()))
+    s = wait(lambda: (lambda s: s if s.state == State.FAULT else None)(snap(d)))
     assert s.fault and s.fault_code == 0x5400
     assert 'power stage' in s.fault_text and 'over-temperature' in s.fault_text
     with pytest.raises(DriveError, match='call fault_reset first'):
-        d.enable()
-    remaining = d.fault_reset()                   # cause still present
+        complete(d.enable())
+    remaining = complete(d.fault_reset())                   # cause still present
     assert '0x5400' in remaining and 'over-temperature' in remaining
     bench.sim.inject_fault('axis1', 'clear_fault', 0, 0)
     mark = bench.monitor.mark()
-    assert d.fault_reset() == ''
+    assert complete(d.fault_reset()) == ''
     bench.monitor.catch_up()
     frames = bench.monitor.since(mark)
     clear = frames.index((0x601, bytes.fromhex('2F 03 10 00 00 00 00 00')))
     edge = next(i for i, (cob, data) in enumerate(frames) if cob in (0x201, 0x301) and
                 data[:2] == b'\x80\x00')
     assert clear < edge, 'the manual clears 0x1003:00 before the reset'
-    s = d.read_state()
+    s = snap(d)
     assert s.state == State.SWITCH_ON_DISABLED and not s.fault
-    d.enable()
+    complete(d.enable())
 
 
 def test_start_up_with_the_power_stage_blocked(bench):
     bench.sim.inject_fault('axis2', 'power_stage_blocked', 0, 0)
     d = bench.connect('axis2')                    # connect succeeds
-    assert d.read_state().state == State.SWITCH_ON_DISABLED
+    assert snap(d).state == State.SWITCH_ON_DISABLED
     with pytest.raises(DriveError) as err:
-        d.enable()
+        complete(d.enable())
     assert 'SWITCH ON DISABLED' in str(err.value) and 'power stage is blocked' in str(err.value)
     assert 'STO' in str(err.value)
     bench.sim.inject_fault('axis2', 'power_stage_ok', 0, 0)
-    d.enable()
-    assert d.read_state().enabled
+    complete(d.enable())
+    assert snap(d).enabled
 
 
 def test_save_params_is_verified(bench, tmp_path):
     d = bench.connect('axis1')
     d.write_register('0x2020:1', 'u32', 424242)
-    note = d.save_params()
+    note = complete(d.save_params())
     assert 'Reepsts 0' in note
     assert '424242' in (tmp_path / 'vector_step_node1.json').read_text()
     bench.sim.inject_fault('axis1', 'nvram_fault', 0, 0)
     with pytest.raises(DriveError, match='Reepsts 0x0008'):
-        d.save_params()
+        complete(d.save_params())
 
 
 @pytest.mark.parametrize('address, data_type, expected', [
@@ -308,18 +324,18 @@ def test_parse_address():
 
 def test_a_reboot_and_a_heartbeat_loss_are_link_errors(bench):
     d = bench.connect('axis1')
-    d.enable()
+    complete(d.enable())
     bench.sim.inject_fault('axis1', 'reboot', 0, 0)
     with pytest.raises(LinkError, match='boot-up seen'):
-        wait(lambda: d.read_state() and False, 2.0)
+        wait(lambda: snap(d) and False, 2.0)
     bench.bus.close()                             # what the node layer does: close, open
     bench.bus.open()
-    d.connect()
-    assert d.read_state().state == State.SWITCH_ON_DISABLED
+    complete(d.connect())
+    assert snap(d).state == State.SWITCH_ON_DISABLED
     bench.sim.inject_fault('axis1', 'cut', 0, 0)
     t0 = time.monotonic()
     with pytest.raises(LinkError, match='heartbeat lost'):
-        wait(lambda: d.read_state() and False, 2.0)
+        wait(lambda: snap(d) and False, 2.0)
     assert 0.4 < time.monotonic() - t0 < 1.0
 
 
@@ -328,21 +344,21 @@ def test_a_node_put_in_nmt_stopped_is_recovered(bench):
     bench.monitor.bus.send(can.Message(arbitration_id=0x000, data=b'\x02\x01',
                                        is_extended_id=False))        # NMT stop node 1
     with pytest.raises(LinkError, match='NMT state 0x04'):
-        wait(lambda: d.read_state() and False, 2.0)
+        wait(lambda: snap(d) and False, 2.0)
     bench.bus.close()
     bench.bus.open()
-    d.connect()                                   # no SDO in STOPPED: a reset reaches it
+    complete(d.connect())                                   # no SDO in STOPPED: a reset reaches it
     assert bench.sim.nodes['axis1'].nmt_state == 0x05
-    assert d.read_state().state == State.SWITCH_ON_DISABLED
+    assert snap(d).state == State.SWITCH_ON_DISABLED
 
 
 def test_two_nodes_on_one_bus(bench):
     drives = bench.connect()
     for d in drives.values():
-        d.enable()
-    drives['axis2'].move_to(-8000, MOTION)
+        complete(d.enable())
+    complete(drives['axis2'].move_to(-8000, MOTION))
     assert settle(drives['axis2']).position_steps == -8000
-    assert drives['axis1'].read_state().position_steps == 0
+    assert snap(drives['axis1']).position_steps == 0
     assert bench.sim.true_position_steps('axis2') == pytest.approx(-8000)
 
 
@@ -361,7 +377,7 @@ def test_missing_node_fails_fast_with_a_link_error(bench):
     d = vs.make_drive(bench.bus, 'ghost', params(node_id=33, **{'can.port': bench.broker.port}))
     t0 = time.monotonic()
     with pytest.raises(LinkError, match='no answer'):
-        d.connect()
+        complete(d.connect())
     assert time.monotonic() - t0 < 3.0
 
 
@@ -377,9 +393,9 @@ def test_any_python_can_interface_works(tmp_path):
         assert bus.description == 'CAN virtual vs_test 125 kbit/s'
         d = vs.make_drive(bus, 'axis1', params(node_id=4, **{'can.interface': 'virtual'}))
         wait(lambda: sim.nodes['axis1'].nmt_state == 0x7F)
-        d.connect()
-        d.enable()
-        d.move_to(-1600, MOTION)
+        complete(d.connect())
+        complete(d.enable())
+        complete(d.move_to(-1600, MOTION))
         assert settle(d).position_steps == -1600
     finally:
         bus.close()
@@ -407,12 +423,12 @@ def test_a_snapshot_waits_for_the_rest_of_a_statusword_burst(bench, monkeypatch)
         wait(lambda: d._values().get(vm.STATUSWORD) == sw, what=f'statusword 0x{sw:04X}')
 
     burst(moving, 1000, -100, 0)
-    wait(lambda: d.read_state().position_steps == 1000, what="the monitor's TxPDOs")
-    monkeypatch.setattr(vs, 'BURST_WAIT_S', 5.0)        # no race with a loaded machine
+    wait(lambda: snap(d).position_steps == 1000, what="the monitor's TxPDOs")
+    monkeypatch.setattr(vs, 'BURST_SLACK_S', 5.0)       # no race with a loaded machine
     burst(attained, 500, 0, vm.RSTSFLG_HOMED, cobs=(0x181,))
     newest_statusword(attained)
     got = {}
-    reader = threading.Thread(target=lambda: got.update(state=d.read_state()))
+    reader = threading.Thread(target=lambda: got.update(state=snap(d)))
     reader.start()
     reader.join(0.3)
     assert reader.is_alive(), 'read_state() returned in the middle of a burst'
@@ -420,14 +436,327 @@ def test_a_snapshot_waits_for_the_rest_of_a_statusword_burst(bench, monkeypatch)
     reader.join(5.0)
     s = got['state']
     assert s.homed and s.position_steps == 500 and s.velocity_steps_s == 0.0
-    # a frame of a burst lost: one bounded wait, then no wait per poll until the next change
-    monkeypatch.setattr(vs, 'BURST_WAIT_S', 0.3)
+    # a frame of a burst lost: one bounded wait (counted from the burst's first frame), then
+    # no wait per poll until the next change
+    monkeypatch.setattr(vs, 'BURST_SLACK_S', 0.3)
     burst(other, 500, 0, vm.RSTSFLG_HOMED, cobs=(0x181, 0x281, 0x381))
     newest_statusword(other)
-    start = time.monotonic()
-    assert d.read_state().status_word == other
-    assert time.monotonic() - start >= 0.3
+    assert snap(d).status_word == other
+    assert time.monotonic() - d._statusword_seen[1] >= 0.3
     bench.monitor.send(0x701, b'\x05')
     start = time.monotonic()
-    assert d.read_state().status_word == other
+    assert snap(d).status_word == other
     assert time.monotonic() - start < 0.3
+
+
+# --- step-wise operations (drive.Steps) --------------------------------------------------------
+def steps_transactions(bus, steps):
+    """Run a step-wise operation by hand; the bus transactions of each step (SDO + RxPDO)."""
+    per_step = []
+    before = bus.transactions
+    try:
+        while True:
+            delay = next(steps)
+            per_step.append(bus.transactions - before)
+            if delay:
+                time.sleep(delay)
+            before = bus.transactions
+    except StopIteration as stop:
+        per_step.append(bus.transactions - before)
+        return per_step, stop.value
+
+
+def test_operations_give_the_bus_back_between_transactions(bench):
+    d = bench.drives['axis1']
+    runs = {}
+    runs['connect'] = steps_transactions(bench.bus, d.connect())
+    runs['enable'] = steps_transactions(bench.bus, d.enable())
+    runs['move_to'] = steps_transactions(bench.bus, d.move_to(3200, MOTION))
+    settle(d)
+    runs['start_homing'] = steps_transactions(
+        bench.bus, d.start_homing(Homing(0, 100, 6400.0, 1600.0, 64000.0)))
+    wait(lambda: snap(d).homing == HomingState.ATTAINED, what='homed on the spot')
+    runs['save_params'] = steps_transactions(bench.bus, d.save_params())
+    runs['disable'] = steps_transactions(bench.bus, d.disable())
+    for name, (per_step, _) in runs.items():
+        assert len(per_step) > 1 and max(per_step) <= 2, (name, per_step)
+    assert len(runs['connect'][0]) > 40                   # ~60 SDOs, one per step
+    assert runs['connect'][1]['vendor_id'] == '0x000000BC'
+    assert snap(d).position_steps == 100 and snap(d).state == State.SWITCH_ON_DISABLED
+
+
+def test_stop_is_one_frame_and_never_a_wait(bench):
+    d = bench.connect('axis1')
+    complete(d.enable())
+    complete(d.move_to(320000, MOTION))
+    wait(lambda: snap(d).position_steps > 3000, what='moving')
+    before = bench.bus.transactions
+    result = d.stop()
+    assert result is None and bench.bus.transactions - before == 1    # Rcmdwr STOP
+    settle(d)
+    complete(d.set_velocity(6400.0, MOTION))
+    wait(lambda: snap(d).moving, what='jogging')
+    mark, before = bench.monitor.mark(), bench.bus.transactions
+    d.stop()
+    assert bench.bus.transactions - before == 1
+    wait(lambda: [f for f in bench.monitor.since(mark, 0x301) if f[1][:2] == b'\x0f\x00'],
+         what='JOG stop: controlword bit 4 low')
+    assert settle(d).enabled
+
+
+def test_an_operation_closed_at_a_yield_writes_nothing_more(bench):
+    d = bench.connect('axis1')
+    complete(d.enable())
+    steps = d.move_to(64000, MOTION)
+    while bench.sim.nodes['axis1'].mode != vm.MODE_PROFILE_POSITION or \
+            bench.sim.nodes['axis1'].setpoint_ack is False:
+        next(steps)                                  # up to the set-point handshake
+    bench.monitor.barrier(bench.bus)
+    mark = bench.monitor.mark()
+    steps.close()                                # what the bus owner does when a stop cuts in
+    d.stop()
+    bench.monitor.catch_up()
+    # only stop()'s frames: Rcmdwr STOP, and bit 4 (left high by the cut handshake) low again
+    assert bench.monitor.since(mark, 0x601) == [(0x601, bytes.fromhex('2B3B200108000000'))]
+    assert bench.monitor.since(mark, 0x301) == [(0x301, struct.pack('<Hi', 0x000F, 64000))]
+    assert not bench.monitor.since(mark, 0x201) and not bench.monitor.since(mark, 0x401)
+    s = settle(d)
+    assert s.enabled and s.position_steps < 64000
+    complete(d.move_to(0, MOTION))               # the next command starts cleanly
+    assert settle(d).position_steps == 0
+
+
+def test_enabled_is_checked_on_the_wire_when_the_txpdos_may_be_stale(tmp_path):
+    """Without the TxPDO2 event timer a quiet drive sends no TxPDO, so the cached statusword may
+    be old: a motion command then asks for 0x6041 by SDO first (here the cache says OPERATION
+    ENABLED, the drive does not)."""
+    bench = Bench(tmp_path, tpdo_event_timer_ms=0)
+    try:
+        d = bench.connect('axis1')
+        d._values()[vm.STATUSWORD] = 0x0637                  # a stale 'enabled'
+        mark = bench.monitor.mark()
+        with pytest.raises(DriveError, match=r'move: the drive is not enabled \(SWITCH ON '
+                           r'DISABLED'):
+            complete(d.move_to(100, MOTION))
+        bench.monitor.barrier(bench.bus)
+        assert bench.monitor.since(mark, 0x601) == [(0x601, bytes.fromhex('4041600000000000'))]
+        assert not [c for c, _ in bench.monitor.since(mark) if c in (0x201, 0x301, 0x401)]
+    finally:
+        bench.close()
+
+
+# --- drive-side watchdogs: SYNC (0x1006) and the node's heartbeat (0x1016) ---------------------
+def test_watchdogs_are_armed_at_connect_and_disarmed_by_an_orderly_close(bench):
+    d = bench.connect('axis1')
+    node = bench.sim.nodes['axis1']
+    assert node._stored(vm.COMMUNICATION_CYCLE_PERIOD) == 500000             # 0.5 s in us
+    assert node._stored(vm.CONSUMER_HEARTBEAT_TIME, 1) == (127 << 16) | 300  # 3 x 100 ms
+    mark = bench.monitor.mark()
+    wait(lambda: len(bench.monitor.since(mark, 0x080)) >= 3, what='SYNC from the node')
+    assert (0x77F, b'\x05') in bench.monitor.since(mark)          # the node's heartbeat
+    d.close()
+    assert node._stored(vm.COMMUNICATION_CYCLE_PERIOD) == 0
+    assert node._stored(vm.CONSUMER_HEARTBEAT_TIME, 1) == 0
+
+
+def test_the_drive_stops_by_itself_when_the_sync_stops(bench):
+    """The node (or its bus) dies mid-run: no more SYNC. After 0x1006 the drive raises alarm
+    "missing SYNC" (Ralarm32 bit 18) and stops on its emergency ramp (Ralarmreact -4, 0x6085);
+    the next connect reports it."""
+    d = bench.connect('axis1')
+    node = bench.sim.nodes['axis1']
+    complete(d.enable())
+    complete(d.set_velocity(6400.0, MOTION))                     # 2 rev/s
+    wait(lambda: snap(d).velocity_steps_s == 6400.0, what='jogging')
+    bench.bus.close()                                            # SYNC and heartbeat stop
+    last_sync = node.sync_at
+    ramp_s = 6400.0 / vm.hz_s_from_rps2x10(node._stored(vm.QUICK_STOP_DECELERATION), 3200.0)
+    assert node.axis.moving
+    wait(lambda: not node.axis.moving, 2.0, 'the drive stopping by itself', period_s=0.002)
+    stopped_after_s = time.monotonic() - last_sync
+    timeout_s = bench.params['sync_timeout_s']
+    assert timeout_s <= stopped_after_s <= timeout_s + SYNC_CONFIRM_S + ramp_s + 0.05
+    assert node.alarms & (1 << 18) and node.state in (State.FAULT, State.FAULT_REACTION_ACTIVE)
+    bench.bus.open()
+    complete(d.connect())
+    s = snap(d)
+    assert s.fault and s.fault_code == 0x5400 and not s.moving
+    assert 'missing SYNC' in s.fault_text and 'Ralarm32 0x00040000' in s.fault_text
+    assert complete(d.fault_reset()) == ''                   # SYNC is back: the cause is gone
+    complete(d.enable())
+
+
+@pytest.mark.parametrize('over, message', [
+    ({'can.sync_period_s': 0.0}, r'sync_timeout_s: 0.5 needs the SYNC of this node'),
+    ({'can.sync_period_s': 0.3}, r'sync_timeout_s: 0.5 must be at least 2 x can.sync_period_s'),
+    ({'node_id': 127}, r'node_id: 127 is can.master_node_id'),
+])
+def test_watchdog_parameters_are_checked(over, message):
+    p = params(**over)
+    with pytest.raises(ValueError, match=message):
+        vs.make_drive(vs.make_bus(p), 'bad', p)
+    p.update(sync_timeout_s=0.0, **{'can.master_heartbeat_ms': 0})
+    vs.make_drive(vs.make_bus(p), 'ok', p)                    # both off: accepted
+
+
+# --- coherent snapshots at every bit rate -------------------------------------------------------
+def test_a_snapshot_is_coherent_on_a_10_kbit_bus(tmp_path):
+    """At 10 kbit/s one TxPDO takes up to 13.5 ms on the wire, and the two drives' bursts
+    interleave by COB-ID priority: axis1's position (0x281) comes 27 ms after its new statusword
+    (0x181), its homed flag (0x481) 81 ms after. A snapshot taken in between must wait for them
+    (a fixed 20 ms wait paired 'target reached' with the old position: issue 10 item 3). The
+    monitor plays both nodes; the pauses between its frames are the wire time."""
+    bench = Bench(tmp_path, **{'can.bitrate': 10000})
+    try:
+        d = bench.connect('axis1')
+        for node in bench.sim.nodes.values():
+            node.link_cut = True
+        frame_s = 135 / 10000           # 8-byte frame, worst-case stuffing, at 10 kbit/s
+
+        def frames(node_id, sw, position, rstsflg):
+            return {0x180 + node_id: struct.pack('<Hb', sw, vm.MODE_PROFILE_POSITION),
+                    0x280 + node_id: struct.pack('<Hi', sw, position),
+                    0x380 + node_id: struct.pack('<Hi', sw, 0),
+                    0x480 + node_id: struct.pack('<HHB', sw, rstsflg, 0)}
+
+        def burst(sw, position, rstsflg, paced):
+            out = {**frames(1, sw, position, rstsflg), **frames(2, sw, -position, 0)}
+            bench.monitor.send(0x701, b'\x05')
+            for k, cob in enumerate(sorted(out)):                # CAN arbitration order
+                if paced and k:
+                    time.sleep(frame_s)
+                bench.monitor.send(cob, out[cob])
+
+        moving, reached = 0x0337, 0x0637
+        burst(moving, 1000, 0, paced=False)
+        wait(lambda: snap(d).position_steps == 1000, what="the monitor's TxPDOs")
+        sender = threading.Thread(target=burst, args=(reached, 1600, vm.RSTSFLG_HOMED, True))
+        sender.start()
+        wait(lambda: d._values().get(vm.STATUSWORD) == reached, what='the new statusword',
+             period_s=0.001)
+        s = snap(d)
+        sender.join()
+        assert s.status_word == reached and not s.moving and s.target_reached
+        assert s.position_steps == 1600 and s.homed, 'new statusword with older values'
+    finally:
+        bench.close()
+
+
+# --- identity: is it the drive this driver knows? -----------------------------------------------
+@pytest.mark.parametrize('axis2, message', [
+    (NodeConfig('axis2', 2, vendor_id=0x000000AB), r'0x1018:01 vendor-ID reads 0x000000AB, not '
+     r'AEC \(0x000000BC\)'),
+    (NodeConfig('axis2', 2, product_code=0x1234), r'0x1018:02 product code reads 0x00001234, '
+     r'not a Vector Step of the manual \(0x0000138E \(SMD5006\), 0x00000BBE \(SMD3006\)\)'),
+    (NodeConfig('axis2', 2, missing_objects=(vm.RALARM32,)), r'0x222F:01 Ralarm32 is missing '
+     r'\(read 0x222F:01: SDO abort 0x06020000'),
+    (NodeConfig('axis2', 2, missing_objects=(vm.RCMDWR,)), r'0x203B:01 Rcmdwr is missing'),
+])
+def test_a_device_that_is_not_the_configured_drive_is_refused(tmp_path, axis2, message):
+    bench = Bench(tmp_path, axis2=axis2)
+    try:
+        mark = bench.monitor.mark()
+        with pytest.raises(IdentityError, match=message):
+            complete(bench.drives['axis2'].connect())
+        bench.drives['axis2'].close()                 # the node's shutdown: nothing either
+        bench.monitor.barrier(bench.bus)
+        requests = bench.monitor.since(mark, 0x602)
+        assert requests and all(data[0] & 0xE0 in (0x40, 0x60) for _, data in requests), \
+            'only SDO uploads (initiate 0x40, segments 0x60/0x70): nothing written'
+        assert not bench.monitor.since(mark, 0x000), 'no NMT for a foreign device'
+    finally:
+        bench.close()
+
+
+def test_a_write_only_register_counts_as_present(bench):
+    identity = complete(bench.drives['axis1'].connect())      # Rcmdwr answers 0x06010001
+    assert identity['Rstpres'] == '16'
+
+
+# --- homing: zero search speed and the start/stop speed (Rhvl 0x2055) ---------------------------
+def test_homing_warns_when_the_zero_speed_is_above_the_start_stop_speed(bench):
+    d = bench.connect('axis1')
+    complete(d.enable())
+    homing = Homing(-1, 500, 6400.0, 1600.0, 64000.0)             # zero search 0.5 rev/s
+    note = complete(d.start_homing(homing))
+    assert 'warning: zero search speed 0x6099:02 (Rhvl) 50' in note
+    assert 'start/stop speed 0x6082 = 0' in note and 'about 20 steps past' in note
+    s = wait(lambda: (lambda s: s if s.homing == HomingState.ATTAINED else None)(snap(d)), 10.0,
+             'homed')
+    s = settle(d)
+    assert 500 - 30 < s.position_steps < 500                      # ramped down past the edge
+    complete(d.move_to(3000, MOTION))
+    settle(d)
+    d.write_register('0x6082:0', 'u32', 50)                       # start/stop >= zero search
+    note = complete(d.start_homing(homing))
+    assert 'warning' not in note
+    wait(lambda: snap(d).homing == HomingState.ATTAINED, 10.0, 'homed again')
+    assert settle(d).position_steps == 500                        # stopped on the edge
+
+
+# --- garbage on the bus --------------------------------------------------------------------------
+def test_garbage_frames_are_link_errors_in_one_line(bench, caplog):
+    """A device sending heartbeats with NMT state 85 while the node connects (canopen's NMT
+    master raised KeyError 85 on the next NMT command: a traceback, no count), a short TxPDO and
+    a short EMCY: dropped, counted in the link errors, one log line per COB-ID."""
+    d = bench.drives['axis1']
+    stop, sent = threading.Event(), []
+
+    def babble():
+        while not stop.is_set():
+            bench.monitor.send(0x701, b'\x55')
+            sent.append(1)
+            time.sleep(0.005)                       # a fast babbler, not synchronisation
+
+    errors = bench.bus.counters()['errors']
+    babbler = threading.Thread(target=babble)
+    with caplog.at_level(logging.WARNING, logger='stepper_drivers.protocol.canopen_link'):
+        babbler.start()
+        try:
+            complete(d.connect())                   # NMT reset and start meanwhile
+        finally:
+            stop.set()
+            babbler.join()
+        bench.monitor.send(0x281, b'\x40\x02')       # TxPDO2 is 6 bytes
+        bench.monitor.send(0x081, b'\x00\x54')       # EMCY is 8 bytes
+        garbage = len(sent) + 2
+        wait(lambda: bench.bus.counters()['garbage_rx'] == garbage, what='garbage counted')
+    assert bench.bus.counters()['errors'] == errors + garbage
+    lines = [r.getMessage() for r in caplog.records]
+    assert len(lines) == 3 and not any(r.exc_info for r in caplog.records), lines
+    assert 'frame 0x701 [1] 55 dropped: heartbeat NMT state 0x55 is not a CiA 301 state' \
+        in lines[0]
+    assert 'frame 0x281 [2] 40 02 dropped: TxPDO2 (mapped) has 6 bytes, not 2' in lines[1]
+    assert 'frame 0x081 [2] 00 54 dropped: an EMCY has 8 bytes, not 2' in lines[2]
+    assert all('\n' not in m for m in lines)
+    assert snap(d).state == State.SWITCH_ON_DISABLED              # the link is fine
+
+
+# --- representable range ------------------------------------------------------------------------
+@pytest.mark.parametrize('command, message', [
+    (lambda d: d.move_to(1 << 31, MOTION), r'target position \[steps\]: 2147483648 is outside '
+     r'0x607A:00 Target position \(-2147483648..2147483647\)'),
+    (lambda d: d.move_to(0, Motion(1e12, 1e5, 1e5)), r'outside 0x6081:00 Profile velocity '
+     r'\(0..2147483647\)'),
+    (lambda d: d.move_to(0, Motion(1e4, 1e8, 1e5)), r'profile acceleration 1e\+08 steps/s\^2: '
+     r'312500 is outside 0x6083:00 Profile acceleration \(1..200000\)'),
+    (lambda d: d.move_to(0, Motion(1e4, 1e5, 10.0)), r'profile deceleration 10 steps/s\^2 is '
+     r'below the drive\'s resolution of 0.1 rev/s\^2'),
+    (lambda d: d.set_velocity(-1e12, MOTION), r'outside 0x6081:00 Profile velocity'),
+    (lambda d: d.start_homing(Homing(-1, 0, 400000.0, 1600.0, 64000.0)),
+     r'homing search speed 400000 steps/s: 12500 is outside 0x6099:01 Speed during search for '
+     r'switch \(0..10000\)'),
+    (lambda d: d.start_homing(Homing(-1, 1 << 31, 6400.0, 1600.0, 64000.0)),
+     r'outside 0x607C:00 Home offset'),
+    (lambda d: d.start_homing(Homing(-1, 0, 6400.0, 1600.0, 1e9)),
+     r'outside 0x609A:00 Homing acceleration \(1..500000\)'),
+])
+def test_motion_commands_are_checked_against_the_objects_range(bench, command, message):
+    d = bench.connect('axis1')
+    complete(d.enable())
+    mark = bench.monitor.mark()
+    with pytest.raises(DriveError, match=message):
+        complete(command(d))
+    bench.monitor.catch_up()
+    sent = [c for c, _ in bench.monitor.since(mark) if c in (0x201, 0x301, 0x401, 0x601)]
+    assert not sent, 'nothing of a refused command goes on the wire'

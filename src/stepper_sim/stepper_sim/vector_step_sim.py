@@ -6,7 +6,12 @@ or more `VectorStepNode`s. Each node is a `canopen.LocalNode` built from config/
   - NMT slave: boot-up after power-on and after NMT reset node/communication (with a reboot
     delay and 10 ms between boot-up and the first heartbeat), heartbeat producer (0x1017),
     node guarding (a 0-byte frame on 0x700+ID counts as the RTR socketcand cannot carry), life
-    guarding and consumer heartbeat (0x1016) with EMCY 0x8130; SDO refused in STOPPED,
+    guarding and consumer heartbeat (0x1016) with EMCY 0x8130 (and no other reaction: the
+    manual ties none to them but the LED); SDO refused in STOPPED,
+  - the SYNC watchdog: with 0x1006 (communication cycle period, us) not 0, no SYNC for that long
+    (counted from the write of 0x1006 or the last SYNC) is the drive alarm "Mancanza Sync"
+    (Ralarm32 bit 18, Rcansts "Sync error") with the alarm reaction of Ralarmreact 0x471E; the
+    cause is gone with the next SYNC (or 0x1006 = 0, an NMT reset communication),
   - a PDO engine: the master's (re)mapping honoured after every SDO write, TxPDOs on change,
     on their event timer (re-armed at every event), spaced by the inhibit time, on SYNC (types
     0..240) or on request (252/253), RxPDOs into the object dictionary, applied at once (254/255)
@@ -65,6 +70,10 @@ NMT_NAMES = {NMT_INITIALISING: 'INITIALISING', NMT_STOPPED: 'STOPPED',
 # NmtMaster.wait_for_bootup()
 BOOTUP_TO_HEARTBEAT_S = 0.010
 SAVE_TIME_S = 0.15                   # Rloadsav 0x81 busy time (EEPROM write)
+# A missing SYNC is confirmed this much later: a simulator process the machine starved for a
+# while would otherwise see its own lateness (SYNCs still queued in its socket) as a lost SYNC.
+SYNC_CONFIRM_S = 0.02
+RALARM_MISSING_SYNC = 1 << 18        # Ralarm32 bit 18 "Mancanza Sync (CANopen o EtherCAT)"
 DEFAULT_MAX_TRAVEL_STEPS = 50 * 3200
 
 # State bits the statusword shows per state [STATUSWORD] (bits 0-3, 5, 6).
@@ -159,20 +168,30 @@ class NodeConfig:
     home_switch_steps: float | None = None
     index_phase_steps: float = 0.0
     position_steps: float = 0.0
-    product_code: int = 0x138E
+    product_code: int = 0x138E           # another value plays a device that is no Vector Step
+    vendor_id: int = vm.VENDOR_ID_AEC
     device_name: str = 'SMD50.06LIC'
     serial_number: int = 0
     power_stage_blocked: bool = False
     homing_error_faults: bool = False
     strict_fault_reset: bool = True
+    # indexes answered "object does not exist" (another firmware), e.g. Ralarm32 0x222F; not
+    # those the simulation itself keeps (Rstpres 0x210E, the DS-301 and DSP-402 objects)
+    missing_objects: tuple[int, ...] = ()
 
     def __post_init__(self):
         if not 1 <= self.node_id <= 127:
             raise ValueError(f'drives.{self.name}.node_id: {self.node_id} is not a node-ID '
                              '(allowed: 1..127)')
-        if self.product_code not in vm.PRODUCT_CODES:
-            raise ValueError(f'drives.{self.name}.product_code: 0x{self.product_code:X} '
-                             f'(allowed: {", ".join(hex(c) for c in vm.PRODUCT_CODES)})')
+        kept = [hex(i) for i in self.missing_objects
+                if i == vm.RSTPRES or not 0x2000 <= i <= 0x5FFF]
+        if kept:
+            raise ValueError(f'drives.{self.name}.missing_objects: {", ".join(kept)} cannot be '
+                             'missing (the simulation uses them)')
+        for name in ('product_code', 'vendor_id'):
+            if not 0 <= getattr(self, name) <= 0xFFFFFFFF:
+                raise ValueError(f'drives.{self.name}.{name}: {getattr(self, name)} is not an '
+                                 'UNSIGNED32 (0x1018)')
 
 
 @dataclasses.dataclass
@@ -208,6 +227,8 @@ class VectorStepNode:
         self.id = cfg.node_id
         self.name = cfg.name
         self.od = canopen.import_od(eds, self.id)
+        for index in cfg.missing_objects:         # another firmware: SDO abort 0x06020000
+            del self.od[index]
         self.local = canopen.LocalNode(self.id, self.od)
         # LocalNode's NmtSlave runs the heartbeat as a python-can periodic task and never boots:
         # this class does NMT itself.
@@ -226,6 +247,7 @@ class VectorStepNode:
         self.nvram_fault = False
         self.power_stage_blocked = cfg.power_stage_blocked
         self.alarm_causes = 0            # Ralarm32 bits whose cause is present
+        self.sync_at: float | None = None   # last SYNC (or 0x1006 write) the watchdog counts from
         self._subscriptions: list[tuple[int, Callable]] = []
         self.rx: list[_Pdo] = []
         self.tx: list[_Pdo] = []
@@ -278,6 +300,7 @@ class VectorStepNode:
         self.consumer_seen: dict[int, float] = {}
         self.sdo_rx_cob = 0x600 + self.id
         self.sdo_tx_cob = 0x580 + self.id
+        self._sync_watch(None)
         self.state = SOD                  # transition 1 (automatic)
 
     def _reset_communication(self) -> None:
@@ -286,6 +309,40 @@ class VectorStepNode:
         self.guard_toggle = 0
         self.guard_seen = None
         self.consumer_seen.clear()
+        self._sync_watch(None)            # 0x1006 is back to 0: not watched
+
+    # ================================================================= SYNC watchdog
+    def _sync_watch(self, since: float | None) -> None:
+        """(Re)start the SYNC watchdog from `since` (a SYNC, a write of 0x1006); None: off. A
+        SYNC or a new 0x1006 removes the alarm's cause (it stays latched in Ralarm32)."""
+        self.sync_at = since
+        self.sync_suspect_at: float | None = None
+        self.sync_error = False
+        self.alarm_causes &= ~RALARM_MISSING_SYNC
+
+    def _sync_timeout_s(self) -> float:
+        return self._stored(vm.COMMUNICATION_CYCLE_PERIOD) / 1e6
+
+    def _sync_deadline(self) -> float | None:
+        timeout_s = self._sync_timeout_s()
+        if not timeout_s or self.sync_at is None:
+            return None
+        if self.sync_suspect_at is not None:
+            return self.sync_suspect_at + SYNC_CONFIRM_S
+        return self.sync_at + timeout_s
+
+    def _check_sync(self, now: float) -> None:
+        deadline = self._sync_deadline()
+        if deadline is None or now < deadline:
+            return
+        if self.sync_suspect_at is None:
+            self.sync_suspect_at = now       # confirmed at the next cycle (SYNC_CONFIRM_S)
+            return
+        logger.info('%s: no SYNC for %.3f s (0x1006 = %d us): alarm "missing SYNC"', self.name,
+                    now - self.sync_at, self._stored(vm.COMMUNICATION_CYCLE_PERIOD))
+        self.sync_at = self.sync_suspect_at = None        # one alarm per loss
+        self.sync_error = True                            # Rcansts / LED "Sync error"
+        self.raise_alarm(RALARM_MISSING_SYNC)
 
     def attach(self) -> None:
         network = self.sim.network
@@ -497,10 +554,12 @@ class VectorStepNode:
         if index == vm.RROTSW:
             return self.id % 100
         if index == vm.RCANSTS:
-            red = 0b0100 if self.comm_error else 0
+            red = 0b0101 if self.sync_error else 0b0100 if self.comm_error else 0
             green = {NMT_PRE_OPERATIONAL: 0b0001, NMT_STOPPED: 0b0010,
                      NMT_OPERATIONAL: 0b0101}.get(self.nmt_state, 0)
             return red | green << 4
+        if index == vm.IDENTITY_OBJECT and subindex == 1:
+            return self.cfg.vendor_id
         if index == vm.IDENTITY_OBJECT and subindex == 2:
             return self.cfg.product_code
         if index == vm.IDENTITY_OBJECT and subindex == 4:
@@ -533,6 +592,9 @@ class VectorStepNode:
             self.home_error_latched = False
         elif index == vm.PRODUCER_HEARTBEAT_TIME:
             self.heartbeat_due = time.monotonic() if value else None
+        elif index == vm.COMMUNICATION_CYCLE_PERIOD:
+            self._sync_watch(time.monotonic() if value else None)
+            self.sim.wake()
         elif vm.RPDO_MAPPING <= index <= vm.RPDO_MAPPING + 3 or \
                 vm.TPDO_MAPPING <= index <= vm.TPDO_MAPPING + 3:
             self._check_mapping(index, subindex, value)
@@ -689,7 +751,11 @@ class VectorStepNode:
         self.sim.wake()
 
     def on_sync(self, now: float) -> None:
-        if self.link_cut or self.nmt_state != NMT_OPERATIONAL:
+        if self.link_cut or self.nmt_state == NMT_INITIALISING:
+            return
+        if self._sync_timeout_s():
+            self._sync_watch(now)
+        if self.nmt_state != NMT_OPERATIONAL:
             return
         for pdo in self.rx:
             if pdo.valid and pdo.pending is not None:
@@ -1216,7 +1282,14 @@ class VectorStepNode:
         times = [math.inf]
         if self.boot_at is not None:
             times.append(self.boot_at)
-        if self.nmt_state == NMT_INITIALISING or self.link_cut:
+        if self.nmt_state == NMT_INITIALISING:
+            return min(times)
+        sync = self._sync_deadline()        # a cut cable loses the SYNC too
+        if sync is not None:
+            times.append(sync)
+        if self.active:
+            times.append(now + self.sim.cycle_s)
+        if self.link_cut:
             return min(times)
         period_ms = self._stored(vm.PRODUCER_HEARTBEAT_TIME)
         if period_ms and self.heartbeat_due is not None:
@@ -1226,8 +1299,6 @@ class VectorStepNode:
         if self.emcy_queue:
             inhibit_s = self._stored(vm.INHIBIT_TIME_EMCY) * 1e-4
             times.append(self.last_emcy_at + inhibit_s)
-        if self.active:
-            times.append(now + self.sim.cycle_s)
         if self.nmt_state == NMT_OPERATIONAL:
             for pdo in self.tx:
                 if pdo.valid and pdo.trans_type >= 0xFE:
@@ -1255,7 +1326,11 @@ class VectorStepNode:
     def tick(self, now: float) -> None:
         if self.boot_at is not None and now >= self.boot_at:
             self._finish_boot(now)
-        if self.nmt_state == NMT_INITIALISING or self.link_cut:
+        if self.nmt_state == NMT_INITIALISING:
+            return
+        self._check_sync(now)
+        if self.link_cut:
+            self.process()                  # the alarm's stop ramp runs without the bus
             return
         period_ms = self._stored(vm.PRODUCER_HEARTBEAT_TIME)
         if period_ms and self.heartbeat_due is not None and now >= self.heartbeat_due:
@@ -1512,7 +1587,10 @@ def build(node) -> VectorStepSim:
                                  'NaN = none'),
         'home_switch_steps': (nan, '0x60FD bit 2 home input from this raw position; NaN = none'),
         'position_steps': (0.0, 'raw position at power-on'),
-        'product_code': (0x138E, '0x1018:02 (0x138E SMD5006, 0xBBE SMD3006)'),
+        'product_code': (0x138E, '0x1018:02 (0x138E SMD5006, 0xBBE SMD3006; another value '
+                                 'plays a device that is not a Vector Step)'),
+        'vendor_id': (vm.VENDOR_ID_AEC, '0x1018:01 (0xBC AEC; another value plays another '
+                                        "maker's device)"),
         'serial_number': (0, '0x1018:04 (0 = 10000 + node-ID)'),
         'power_stage_blocked': (False, 'start with the power stage blocked (STO)'),
         'homing_error_faults': (False, 'a homing error also puts the drive in FAULT'),
@@ -1530,6 +1608,7 @@ def build(node) -> VectorStepSim:
             limit_pos_steps=opt(p['limit_pos_steps']),
             home_switch_steps=opt(p['home_switch_steps']),
             position_steps=float(p['position_steps']), product_code=int(p['product_code']),
+            vendor_id=int(p['vendor_id']),
             serial_number=int(p['serial_number']),
             power_stage_blocked=bool(p['power_stage_blocked']),
             homing_error_faults=bool(p['homing_error_faults']),

@@ -16,7 +16,8 @@ import time
 import can
 import pytest
 from stepper_drivers.protocol.socketcand_broker import SocketcandBroker
-from stepper_sim.vector_step_sim import NodeConfig, VectorStepSim
+from stepper_drivers.vendors import vector_step_map as vm
+from stepper_sim.vector_step_sim import NodeConfig, SYNC_CONFIRM_S, VectorStepSim
 
 logging.getLogger('can.interfaces.socketcand.socketcand').setLevel(logging.ERROR)
 
@@ -559,3 +560,53 @@ def test_g15_nvram_error_gives_emcy_ff01(bench):
     emcy = wire.expect(0x081, 1.0)
     assert emcy[:2] == h('01 FF') and emcy[3:5] == h('08 00')      # Reepsts bit 3
     assert wire.read(0x20C4, 1) == 0x08
+
+
+# --- SYNC watchdog: 0x1006, Ralarm32 bit 18 "Mancanza Sync", Ralarmreact ----------------------
+def test_a_missing_sync_is_alarm_18_with_the_alarm_reaction(bench):
+    sim, wire = bench
+    node = sim.nodes['axis1']
+    wire.write(0x6060, 0, 0xFF, 1)
+    wire.write(0x6081, 0, 300, 4)                   # 3 rev/s
+    start(wire)
+    enable(wire, 0x201, h('FF'))
+    wire.send(0x201, h('1F 00 FF'))                 # JOG start
+    wire.wait_sw(lambda sw: sw & 0x0100)
+    assert wire.write(0x1006, 0, 100000, 4) == h('60 06 10 00 00 00 00 00')    # 100 ms
+    wire.drain(0x081)
+    for _ in range(6):                              # SYNC every 50 ms: no alarm
+        wire.send(0x080, b'')
+        last_sync = time.monotonic()
+        assert wire.silent(0x081, 0.05)
+    emcy = wire.expect(0x081, 1.0)
+    alarm_after_s = time.monotonic() - last_sync
+    assert 0.1 <= alarm_after_s <= 0.1 + SYNC_CONFIRM_S + 0.05, alarm_after_s
+    assert emcy[:2] == h('00 54') and int.from_bytes(emcy[3:7], 'little') == 1 << 18
+    assert wire.read(0x222F, 1) == 1 << 18          # Ralarm32 bit 18
+    assert wire.read(0x20B8, 1) & 0x0F == 0b0101    # Rcansts red LED: Sync error
+    # Ralarmreact -4: not a "non mascherabile" power alarm, so the emergency ramp 0x6085
+    ramp_s = vm.hz_from_rps100(300, 3200) / vm.hz_s_from_rps2x10(1000, 3200)
+    wire.wait_sw(lambda sw: sw & 0x4F == 0x08, 1.0)  # FAULT at standstill
+    assert not node.axis.moving and time.monotonic() - last_sync < 0.1 + ramp_s + 0.2
+    # the cause is gone with the next SYNC: the manual's reset procedure works
+    wire.send(0x201, h('00 00 FF'))
+    wire.send(0x201, h('80 00 FF'))
+    assert wire.sw() & 0x4F == 0x08                 # no SYNC yet: cause present, still FAULT
+    wire.send(0x080, b'')
+    assert wire.sdo('2F 03 10 00 00 00 00 00') == h('60 03 10 00 00 00 00 00')
+    wire.send(0x201, h('00 00 FF'))
+    wire.send(0x201, h('80 00 FF'))
+    wire.wait_sw(lambda sw: sw & 0x4F == 0x40)
+
+
+def test_the_sync_watchdog_is_off_by_default_and_after_a_reset_communication(bench):
+    sim, wire = bench
+    start(wire)
+    enable(wire)
+    assert wire.read(0x1006) == 0
+    assert wire.silent(0x081, 0.3)                  # no SYNC, no 0x1006: no alarm
+    wire.write(0x1006, 0, 50000, 4)
+    wire.send(0x000, h('82 01'))                    # reset communication: 0x1006 = 0 again
+    wire.expect(0x701, 1.0, h('00'))
+    assert wire.read(0x1006) == 0 and wire.silent(0x081, 0.2)
+    assert sim.nodes['axis1'].alarms == 0

@@ -1,14 +1,22 @@
 """CANopen master side on python-can + canopen 2.4.1: the bus, and one remote node's plumbing.
 
 `CanBus` is one python-can bus (socketcand to the loopback broker in tests, `socketcan` `can0`
-on hardware) with one `canopen.Network`; every drive on it is a `RemoteDrive` (a
-`canopen.BaseNode402` plus what the library leaves to the application):
+on hardware) with one `canopen.Network`. While it is open it produces what the drives watch:
+SYNC every `sync_period_s` (the drives' 0x1006 watchdog) and a heartbeat of its own
+(`master_node_id`, every `master_heartbeat_ms`; the drives' 0x1016 consumer), both python-can
+periodic tasks that end with the bus or the process. Frames that do not fit what a subscribed
+COB-ID carries (length, heartbeat state) are dropped, counted as link errors and logged in one
+line (`CheckedNetwork`). Every drive on the bus is a `RemoteDrive` (a `canopen.BaseNode402` plus
+what the library leaves to the application):
   - a boot-up latch armed before an NMT reset (NmtMaster.wait_for_bootup() only looks at the
     last state received, so a heartbeat right behind the boot-up hides it: transports.md A5.3),
   - a heartbeat consumer with a deadline (the library has none: A5.4),
   - EMCY and TPDO reception counters, the last EMCY,
-  - SDO access that raises the project's errors: an abort is a DriveError naming the code and
-    its CiA 301 text, no answer is a LinkError (the node then reconnects).
+  - SDO access that raises the project's errors: an abort is an SdoAbortError (a DriveError
+    naming the code and its CiA 301 text), no answer is a LinkError (the node then reconnects),
+  - step-wise waits and PDO configuration (`drive.Steps`: one SDO per step).
+NMT commands are sent as raw frames: canopen's NmtMaster.send_command() looks the last received
+heartbeat state up in a table and raises KeyError for a state byte it does not know.
 No rclpy here.
 """
 
@@ -25,10 +33,11 @@ from typing import Any, Callable
 import can
 import canopen
 from canopen.emcy import EmcyError
+from canopen.objectdictionary import ODVariable
 from canopen.sdo.base import SdoVariable
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
-from ..drive import Bus, DriveError, LinkError
+from ..drive import Bus, DriveError, LinkError, Steps
 from ..vendors import vector_step_map as vm
 
 logger = logging.getLogger(__name__)
@@ -40,6 +49,47 @@ logging.getLogger('canopen.sdo.client').setLevel(logging.ERROR)
 
 BITRATES = (10000, 20000, 50000, 125000, 250000, 500000, 800000, 1000000)   # Rcanbaud 0..7
 PROBE_TIMEOUT_S = 1.0
+POLL_S = 0.002                 # step of a wait on something the receive thread records
+# CiA 301 NMT: command specifiers and the states a heartbeat may report (bit 7 is reserved).
+NMT_COMMANDS = {'OPERATIONAL': 0x01, 'STOPPED': 0x02, 'PRE-OPERATIONAL': 0x80,
+                'RESET': 0x81, 'RESET COMMUNICATION': 0x82}
+NMT_STATES = {0x00: 'BOOT-UP', 0x04: 'STOPPED', 0x05: 'OPERATIONAL', 0x7F: 'PRE-OPERATIONAL'}
+SYNC_COB_ID = 0x080            # 0x1005 default ("0x80 or 0x80000080")
+GARBAGE_LOG_PERIOD_S = 10.0    # one log line per COB-ID and period for frames that do not fit
+MASTER = '(this node)'         # CanBus._node_ids value of the node's own heartbeat node-ID
+
+
+class SdoAbortError(DriveError):
+    """The node answered an SDO with an abort; `code` is the CiA 301 abort code."""
+
+    def __init__(self, message: str, code: int):
+        super().__init__(message)
+        self.code = code
+
+
+class CheckedNetwork(canopen.Network):
+    """A canopen.Network that checks each received frame against what its COB-ID carries.
+
+    A frame that does not fit (a heartbeat that is not one byte with a CiA 301 state, an EMCY or
+    SDO answer that is not 8 bytes, a TxPDO whose length is not its mapping's) never reaches
+    canopen (whose callbacks raise KeyError/struct.error on them, logged with no count); it is
+    counted in the bus' link errors and logged in one line. So is any error a callback raises.
+    """
+
+    def __init__(self, bus: 'CanBus'):
+        super().__init__()
+        self.owner = bus
+
+    def notify(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        check = self.owner.frame_checks.get(can_id)
+        problem = check(bytes(data)) if check is not None else ''
+        if not problem:
+            try:
+                super().notify(can_id, data, timestamp)
+                return
+            except Exception as exc:  # noqa: BLE001 - a frame must not stop the receive thread
+                problem = f'{type(exc).__name__}: {exc}'
+        self.owner.garbage(can_id, bytes(data), problem)
 
 
 class CanBus(Bus):
@@ -47,18 +97,26 @@ class CanBus(Bus):
 
     def __init__(self, interface: str = 'socketcand', channel: str = 'can0',
                  bitrate: int = 125000, host: str = '127.0.0.1', port: int = 29536,
-                 timeout_s: float = 0.5):
+                 timeout_s: float = 0.5, sync_period_s: float = 0.0,
+                 master_node_id: int = 127, master_heartbeat_ms: int = 0):
         self.interface = interface
         self.channel = channel
         self.bitrate = int(bitrate)
         self.host = host
         self.port = int(port)
         self.timeout_s = float(timeout_s)
+        self.sync_period_s = float(sync_period_s)         # 0: no SYNC producer
+        self.master_node_id = int(master_node_id)
+        self.master_heartbeat_ms = int(master_heartbeat_ms)   # 0: no heartbeat of our own
         self.network: canopen.Network | None = None
         self.generation = 0              # +1 at every open(): drives re-attach their nodes
         self._node_ids: dict[int, str] = {}
+        if self.master_heartbeat_ms:
+            self._node_ids[self.master_node_id] = MASTER
+        self.frame_checks: dict[int, Callable[[bytes], str]] = {}   # COB-ID -> problem or ''
+        self._garbage_logged: dict[int, float] = {}
         self.extra: dict[str, int] = {'tpdo_rx': 0, 'emcy_rx': 0, 'heartbeat_rx': 0,
-                                      'bootups': 0}
+                                      'bootups': 0, 'garbage_rx': 0}
         if interface == 'socketcand':
             self.description = f'CAN socketcand {host}:{port} {channel}'
         else:
@@ -67,10 +125,18 @@ class CanBus(Bus):
     def claim(self, node_id: int, name: str) -> None:
         """Reserve a node-ID for a drive; two drives with one node-ID is a configuration error."""
         other = self._node_ids.get(node_id)
+        if other == MASTER:
+            raise ValueError(f'drives.{name}.node_id: {node_id} is can.master_node_id, the '
+                             "node-ID of this node's own heartbeat (allowed: 1..127, one per "
+                             'device)')
         if other is not None and other != name:
             raise ValueError(f'drives.{name}.node_id: {node_id} is already the node-ID of '
                              f'drive {other!r} on this bus (allowed: 1..127, one per drive)')
         self._node_ids[node_id] = name
+
+    @property
+    def drive_count(self) -> int:
+        return sum(1 for name in self._node_ids.values() if name != MASTER)
 
     def _bus_kwargs(self) -> dict[str, Any]:
         if self.interface == 'socketcand':
@@ -86,15 +152,29 @@ class CanBus(Bus):
             except OSError as exc:
                 raise LinkError(f'{self.description}: cannot connect ({exc}); is the '
                                 'socketcand server (broker) running?') from None
-        network = canopen.Network()
+        network = CheckedNetwork(self)
         network.NOTIFIER_CYCLE = 0.1               # close() waits one receive timeout
         try:
             network.connect(**self._bus_kwargs())
+            # The drives' watchdogs: a missing SYNC is a drive alarm (0x1006, Ralarm32 bit 18),
+            # a missing heartbeat only their LED (0x1016). Periodic tasks: they stop with the
+            # bus (close) and with the process.
+            network.sync.cob_id = SYNC_COB_ID
+            if self.sync_period_s:
+                network.sync.start(self.sync_period_s)
+            if self.master_heartbeat_ms:
+                network.send_periodic(0x700 + self.master_node_id, bytes([0x05]),
+                                      self.master_heartbeat_ms / 1000.0)
         except (can.CanError, OSError, ValueError, TimeoutError) as exc:
+            try:
+                network.disconnect()
+            except Exception:  # noqa: BLE001 - half-open: close what there is
+                pass
             raise LinkError(f'{self.description}: {type(exc).__name__}: {exc}') from None
         self.network = network
         self.generation += 1
-        logger.info('opened %s', self.description)
+        logger.info('opened %s%s', self.description,
+                    f', SYNC every {self.sync_period_s:g} s' if self.sync_period_s else '')
 
     def close(self) -> None:
         network, self.network = self.network, None
@@ -130,6 +210,33 @@ class CanBus(Bus):
     def counters(self) -> dict[str, int]:
         return {'transactions': self.transactions, 'errors': self.errors, **self.extra}
 
+    def garbage(self, can_id: int, data: bytes, problem: str) -> None:
+        """A received frame that does not fit its COB-ID (receive thread): count, log a line."""
+        self.errors += 1
+        self.extra['garbage_rx'] += 1
+        now = time.monotonic()
+        if now - self._garbage_logged.get(can_id, -GARBAGE_LOG_PERIOD_S) >= \
+                GARBAGE_LOG_PERIOD_S:
+            self._garbage_logged[can_id] = now
+            logger.warning('%s: link error: frame 0x%03X [%d] %s dropped: %s (%d such frames '
+                           'so far)', self.description, can_id, len(data), data.hex(' '),
+                           problem, self.extra['garbage_rx'])
+
+
+def check_length(length: int, what: str) -> Callable[[bytes], str]:
+    def check(data: bytes) -> str:
+        return '' if len(data) == length else f'{what} has {length} bytes, not {len(data)}'
+    return check
+
+
+def check_heartbeat(data: bytes) -> str:
+    if len(data) != 1:
+        return f'a heartbeat has 1 byte, not {len(data)}'
+    if data[0] & 0x7F not in NMT_STATES:
+        return (f'heartbeat NMT state 0x{data[0]:02X} is not a CiA 301 state '
+                f'({", ".join(f"0x{k:02X}" for k in NMT_STATES)})')
+    return ''
+
 
 @dataclasses.dataclass
 class EmcyRecord:
@@ -162,6 +269,10 @@ class RemoteDrive:
         self.emcy: EmcyRecord | None = None   # last EMCY with a code other than 0x0000
         self.emcy_count = 0
         self.emcy_listeners: list[Callable[[EmcyRecord], None]] = []
+        checks = bus.frame_checks
+        checks[0x700 + node_id] = check_heartbeat
+        checks[0x080 + node_id] = check_length(8, 'an EMCY')            # COB-ID 0x1014
+        checks[0x580 + node_id] = check_length(8, 'an SDO answer')
 
     # Attachment --------------------------------------------------------------------------------
     def attach(self) -> canopen.BaseNode402:
@@ -226,16 +337,17 @@ class RemoteDrive:
             self._cond.notify_all()
 
     # Waiting ------------------------------------------------------------------------------------
-    def wait(self, condition: Callable[[], bool], timeout_s: float) -> bool:
-        """Wait for a condition on this object's counters (evaluated under its lock)."""
+    def wait(self, condition: Callable[[], bool], timeout_s: float) -> Steps[bool]:
+        """Step-wise wait for a condition on what the receive thread records (evaluated under
+        this object's lock); True when met, False at the timeout."""
         deadline = time.monotonic() + timeout_s
-        with self._cond:
-            while not condition():
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    return False
-                self._cond.wait(left)
-            return True
+        while True:
+            with self._cond:
+                if condition():
+                    return True
+            if time.monotonic() >= deadline:
+                return False
+            yield POLL_S
 
     def heartbeat_age_s(self) -> float | None:
         at = self.heartbeat_at
@@ -244,19 +356,15 @@ class RemoteDrive:
     # NMT -----------------------------------------------------------------------------------------
     def nmt(self, command: str) -> None:
         """Send an NMT command ('OPERATIONAL', 'PRE-OPERATIONAL', 'RESET COMMUNICATION' ...)."""
-        node = self._node()
-        try:
-            node.nmt.state = command
-        except (can.CanError, OSError, RuntimeError) as exc:
-            self.bus.errors += 1
-            raise LinkError(f'{self.name}: NMT {command}: {type(exc).__name__}: {exc}') from None
+        self._node()
+        self.bus.send(0x000, bytes([NMT_COMMANDS[command], self.node_id]))
 
-    def reset_and_wait_bootup(self, command: str, timeout_s: float) -> bool:
+    def reset_and_wait_bootup(self, command: str, timeout_s: float) -> Steps[bool]:
         """NMT reset (node or communication) with the boot-up latch armed before the frame."""
         with self._cond:
             seen = self.bootups
         self.nmt(command)
-        return self.wait(lambda: self.bootups > seen, timeout_s)
+        return (yield from self.wait(lambda: self.bootups > seen, timeout_s))
 
     # SDO -----------------------------------------------------------------------------------------
     def _node(self) -> canopen.BaseNode402:
@@ -264,13 +372,15 @@ class RemoteDrive:
             raise LinkError(f'{self.name}: not attached to {self.bus.description}')
         return self.node
 
-    def _sdo(self, what: str, fn: Callable[[], Any]) -> Any:
+    def _sdo(self, what: str, fn: Callable[[], Any], expected_aborts: tuple[int, ...] = ()
+             ) -> Any:
         self.bus.transactions += 1
         try:
             return fn()
         except SdoAbortedError as exc:
-            self.bus.errors += 1
-            raise DriveError(f'{what}: {vm.abort_text(exc.code)}') from None
+            if exc.code not in expected_aborts:   # an answer the caller asks for is no error
+                self.bus.errors += 1
+            raise SdoAbortError(f'{what}: {vm.abort_text(exc.code)}', exc.code) from None
         except SdoCommunicationError as exc:
             self.bus.errors += 1
             raise LinkError(f'{self.name} (node-ID {self.node_id}) gave no SDO answer to {what} '
@@ -279,11 +389,12 @@ class RemoteDrive:
             self.bus.errors += 1
             raise LinkError(f'{self.name}: {what}: {type(exc).__name__}: {exc}') from None
 
-    def read(self, index: int, sub: int = 0) -> Any:
-        """Read one object through its EDS type (raw value: int or str)."""
+    def read(self, index: int, sub: int = 0, expected_aborts: tuple[int, ...] = ()) -> Any:
+        """Read one object through its EDS type (raw value: int or str). An abort raises
+        SdoAbortError; those in `expected_aborts` do not count as link errors."""
         node = self._node()
         what = f'read 0x{index:04X}:{sub:02X}'
-        return self._sdo(what, lambda: self._entry(node, index, sub).raw)
+        return self._sdo(what, lambda: self._entry(node, index, sub).raw, expected_aborts)
 
     def write(self, index: int, sub: int, value: Any) -> None:
         node = self._node()
@@ -292,6 +403,13 @@ class RemoteDrive:
         def do():
             self._entry(node, index, sub).raw = value
         self._sdo(what, do)
+
+    def limits(self, index: int, sub: int) -> tuple[int | None, int | None]:
+        """LowLimit/HighLimit of an object in the EDS (None where it gives none)."""
+        obj = self._node().object_dictionary[index]
+        if not isinstance(obj, ODVariable):
+            obj = obj[sub]
+        return obj.min, obj.max
 
     @staticmethod
     def _entry(node: canopen.BaseNode402, index: int, sub: int):
@@ -313,30 +431,42 @@ class RemoteDrive:
     # PDO configuration [COME MAPPARE UN PDO] --------------------------------------------------
     def configure_pdo(self, direction: str, number: int,
                       entries: tuple[tuple[int, int, int], ...], transmission_type: int = 0xFE,
-                      event_timer_ms: int | None = None,
-                      inhibit_time_100us: int | None = None) -> None:
-        """Map one PDO (1..4) and enable it; an empty `entries` disables it.
+                      event_timer_ms: int = 0, inhibit_time_100us: int = 0) -> Steps[None]:
+        """Map one PDO (1..4) and enable it; an empty `entries` disables it. One SDO per step.
 
-        canopen's PdoMap.save() follows the robust sequence of the digest's section 9: COB-ID
-        invalid, transmission type (TxPDO: inhibit time, event timer), mapping sub 0 = 0, entries,
-        sub 0 = n (the manual's re-enable), COB-ID valid.
+        The robust sequence of the digest's section 9 (canopen's PdoMap.save() order): COB-ID
+        invalid, transmission type (TxPDO: inhibit time, event timer), mapping sub 0 = 0,
+        entries, sub 0 = n (the manual's re-enable), COB-ID valid; then the local PdoMap decodes
+        what arrives on the COB-ID.
         """
         node = self._node()
-        maps = node.tpdo if direction == 'tx' else node.rpdo
-        bases = vm.PDO_COB_BASES_TX if direction == 'tx' else vm.PDO_COB_BASES_RX
-        pdo = maps[number]
+        tx = direction == 'tx'
+        pdo = (node.tpdo if tx else node.rpdo)[number]
         pdo.clear()
         for index, sub, bits in entries:
             pdo.add_variable(index, sub, bits)
-        pdo.cob_id = bases[number - 1] + self.node_id
-        pdo.trans_type = transmission_type
-        pdo.enabled = bool(entries)
-        pdo.rtr_allowed = True
-        if direction == 'tx':
-            pdo.event_timer = event_timer_ms
-            pdo.inhibit_time = inhibit_time_100us
-        what = f'map {"Tx" if direction == "tx" else "Rx"}PDO{number}'
-        self._sdo(what, pdo.save)
+        cob_id = (vm.PDO_COB_BASES_TX if tx else vm.PDO_COB_BASES_RX)[number - 1] + self.node_id
+        pdo.cob_id, pdo.trans_type, pdo.enabled = cob_id, transmission_type, bool(entries)
+        comm = (vm.TPDO_COMMUNICATION if tx else vm.RPDO_COMMUNICATION) + number - 1
+        mapping = (vm.TPDO_MAPPING if tx else vm.RPDO_MAPPING) + number - 1
+        writes = [(comm, 1, cob_id | vm.PDO_INVALID), (comm, 2, transmission_type)]
+        if tx:
+            pdo.event_timer, pdo.inhibit_time = event_timer_ms, inhibit_time_100us
+            writes += [(comm, 3, inhibit_time_100us), (comm, 5, event_timer_ms)]
+        writes.append((mapping, 0, 0))
+        writes += [(mapping, k, vm.mapping_entry(*entry)) for k, entry in enumerate(entries, 1)]
+        writes.append((mapping, 0, len(entries)))
+        if entries:
+            writes.append((comm, 1, cob_id))
+        for k, (index, sub, value) in enumerate(writes):
+            if k:
+                yield 0.0
+            self.write(index, sub, value)
+        if entries:
+            pdo.subscribe()
+            if tx:
+                self.bus.frame_checks[cob_id] = check_length(
+                    pdo.length // 8, f'TxPDO{number} (mapped)')
 
     def watch_tpdos(self) -> None:
         """Count and time the TxPDOs (after BaseNode402.setup_pdos, so that waiters see the
@@ -345,10 +475,11 @@ class RemoteDrive:
             if pdo.enabled and self.on_tpdo not in pdo.callbacks:
                 pdo.add_callback(self.on_tpdo)
 
-    def wait_heartbeat_state(self, state: int, since: float, timeout_s: float) -> bool:
+    def wait_heartbeat_state(self, state: int, since: float, timeout_s: float) -> Steps[bool]:
         """Wait for a heartbeat received after `since` (time.monotonic()) showing `state`."""
-        return self.wait(lambda: self.heartbeat_state == state and self.heartbeat_at is not None
-                         and self.heartbeat_at > since, timeout_s)
+        return (yield from self.wait(
+            lambda: self.heartbeat_state == state and self.heartbeat_at is not None
+            and self.heartbeat_at > since, timeout_s))
 
 
 def pack(data_type: str, value: int) -> bytes:

@@ -1,13 +1,19 @@
 """AEC Vector Step over CANopen (DS-301 V4.01 / DSP-402 V1.1): the drive class and the vendor.
 
 Objects, codes and texts come from `vector_step_map.py` (which cites the sections of the manual
-`aec_vector_step_canopen_it.txt`), the CiA 402 tables from `cia402.py`, the bus and node
-plumbing from `protocol/canopen_link.py`. Every boot (connect) of a node: SDO ping, NMT reset
-communication with the boot-up latch, identity, heartbeat producer 0x1017, the PDO set of
-DRIVER_RPDOS/DRIVER_TPDOS written with the manual's mapping procedure, values seeded by SDO, NMT
-start and a heartbeat that shows OPERATIONAL. After that the
-state comes from TxPDOs only, so `read_state()` costs no bus traffic; the heartbeat consumer and
-the boot-up latch turn a silent or rebooted node into a LinkError (the node layer reconnects).
+`aec_vector_step_canopen_it.txt`), the CiA 402 tables and walker from `cia402.py`, the bus and
+node plumbing from `protocol/canopen_link.py`. Every boot (connect) of a node: SDO ping, identity
+(0x1000, 0x1018 and the AEC registers the driver needs: IdentityError otherwise), NMT reset
+communication with the boot-up latch, heartbeat producer 0x1017, the drive-side watchdogs (0x1006
+SYNC timeout, 0x1016 consumer of this node's heartbeat), the PDO set of DRIVER_RPDOS/DRIVER_TPDOS
+written with the manual's mapping procedure, values seeded by SDO, NMT start and a heartbeat
+that shows OPERATIONAL. After that the state comes from TxPDOs only, so `read_state()` costs no
+bus traffic; the heartbeat consumer and the boot-up latch turn a silent or rebooted node into a
+LinkError (the node layer reconnects).
+
+Every operation that waits or takes more than two transactions is step-wise (`drive.Steps`: one
+SDO or PDO exchange per step, `yield POLL_S` while waiting for a TxPDO); stop() is one frame (two
+during homing) and never waits.
 
 canopen's BaseNode402 is used for its PDO plumbing (tpdo_values), not for the parts that do not
 fit this drive (digest section 10): `op_mode` (its getter has no name for mode -1, its setter
@@ -25,9 +31,10 @@ from typing import Any, Mapping
 
 from .. import cia402
 from ..cia402 import CW_BIT_NEW_SET_POINT, CW_ENABLE_OPERATION
-from ..drive import (Bus, Drive, DriveError, DriveState, Homing, HomingState, LinkError, Motion,
-                     ParamSpec, State, Vendor, register_type)
-from ..protocol.canopen_link import BITRATES, CanBus, RemoteDrive, pack, unpack
+from ..drive import (Bus, Drive, DriveError, DriveState, Homing, HomingState, IdentityError,
+                     LinkError, Motion, ParamSpec, State, Steps, Vendor, register_type)
+from ..protocol.canopen_link import (BITRATES, POLL_S, CanBus, RemoteDrive, SdoAbortError, pack,
+                                     unpack)
 from . import vector_step_map as vm
 
 logger = logging.getLogger(__name__)
@@ -42,16 +49,27 @@ SAVE_TIMEOUT_S = 5.0           # Rloadsav 0x81 (EEPROM write) must read 0 again 
 SAVE_POLL_S = 0.02
 WARNING_READ_PERIOD_S = 1.0    # Rwarning is read by SDO at most this often while SW bit 7 is set
 PING_TIMEOUT_S = 0.2
-# A statusword change is sent in all 4 TxPDOs back to back (4 frames: ~4 ms at 125 kbit/s).
-BURST_WAIT_S = 0.02
 RESCUE_BOOT_WAIT_S = 0.5       # boot-up wait after a reset sent to a node that gave no SDO answer
+# A statusword change goes out in every TxPDO back to back; the other drives' bursts, SYNC and
+# heartbeats may come in between. The wire time of one such round is the bound of the wait for a
+# coherent snapshot: FRAME_BITS per frame (11-bit identifier, 8 data bytes, worst-case stuff
+# bits; ISO 11898-1), one frame per TxPDO and drive on the bus, at the bus' bit rate (10 kbit/s:
+# 13.5 ms per frame [LAYER FISICO]), plus BURST_SLACK_S for the receive thread.
+FRAME_BITS = 135
+BURST_SLACK_S = 0.02
+# 0x1016 consumer time: this many periods of the node's own heartbeat ("deve essere settato piu'
+# alto del tempo impostato nel generatore" [CONSUMER HEARTBEAT TIME]).
+MASTER_HEARTBEAT_PERIODS = 3
+SYNC_TIMEOUT_MIN_PERIODS = 2   # 0x1006 must span this many SYNC periods (jitter of the producer)
 HOLD_CW = {                    # controlword that keeps each state (sent with a mode change)
     State.SWITCH_ON_DISABLED: cia402.CW_DISABLE_VOLTAGE, State.READY_TO_SWITCH_ON:
     cia402.CW_SHUTDOWN, State.SWITCHED_ON: cia402.CW_SWITCH_ON,
     State.OPERATION_ENABLED: CW_ENABLE_OPERATION, State.QUICK_STOP_ACTIVE: cia402.CW_QUICK_STOP,
 }
-MODE_BITS = 0x0070             # controlword bits 4..6: mode specific
-INT32 = (-(1 << 31), (1 << 31) - 1)
+ON_THE_SPOT_METHODS = (0, 35, 37)    # no search, no speed: nothing moves
+OBJECTS = {(o.index, o.sub): o for o in vm.DRIVER_OBJECTS}
+# AEC registers the driver relies on; a firmware without one is not the drive this driver knows.
+REQUIRED_REGISTERS = (vm.RSTPRES, vm.RCMDWR, vm.RSTSFLG, vm.RSTSFLG1, vm.RWARNING, vm.RALARM32)
 
 
 def parse_address(address: str) -> tuple[int, int]:
@@ -101,6 +119,24 @@ class VectorStepDrive(Drive):
         if self.heartbeat_ms and self.heartbeat_timeout_s * 1000.0 <= self.heartbeat_ms:
             raise ValueError(f'drives.{name}.heartbeat_timeout_s: {self.heartbeat_timeout_s} '
                              f'must exceed the heartbeat period ({self.heartbeat_ms} ms)')
+        self.sync_timeout_s = float(params.get('sync_timeout_s', 0.0))
+        sync_period_s = float(params.get('can.sync_period_s', 0.0))
+        if self.sync_timeout_s and not sync_period_s:
+            raise ValueError(f'drives.{name}.sync_timeout_s: {self.sync_timeout_s:g} needs the '
+                             'SYNC of this node (can.sync_period_s > 0); 0 leaves 0x1006 off')
+        if self.sync_timeout_s and \
+                self.sync_timeout_s < SYNC_TIMEOUT_MIN_PERIODS * sync_period_s:
+            raise ValueError(f'drives.{name}.sync_timeout_s: {self.sync_timeout_s:g} must be at '
+                             f'least {SYNC_TIMEOUT_MIN_PERIODS} x can.sync_period_s '
+                             f'({sync_period_s:g} s)')
+        # 0x1016:01 = node-ID << 16 | time [ms] [CONSUMER HEARTBEAT TIME]; 0 = not watched
+        consumer_ms = MASTER_HEARTBEAT_PERIODS * self.can.master_heartbeat_ms
+        if consumer_ms > 0xFFFF:
+            raise ValueError(f'can.master_heartbeat_ms: {self.can.master_heartbeat_ms}: '
+                             f'{MASTER_HEARTBEAT_PERIODS} periods must fit the 16-bit 0x1016 '
+                             f'time (at most {0xFFFF // MASTER_HEARTBEAT_PERIODS} ms)')
+        self.consumer_heartbeat = self.can.master_node_id << 16 | consumer_ms \
+            if consumer_ms else 0
         self.event_timer_ms = int(params.get('tpdo_event_timer_ms', 100))
         self.boot_timeout_s = float(params.get('boot_timeout_s', 2.0))
         self.boot_retries = int(params.get('boot_retries', 3))
@@ -108,24 +144,30 @@ class VectorStepDrive(Drive):
         self.link = RemoteDrive(bus, self.node_id, eds, name)
         self.cia = cia402.Cia402Device(self._read_statusword, self._write_controlword,
                                        min_delay_s=CW_SW_DELAY_S, name=name)
-        self.cia.POLL_S = 0.002
-        self._cw = 0                      # controlword last sent
+        self.cia.POLL_S = POLL_S
         self._extra: tuple[int | None, int | None] = (None, None)   # (mode, velocity) to send
         self._mode_cmd: int | None = None  # 0x6060 last sent
         self._target = 0                   # 0x607A sent with every RxPDO2
         self._written: dict[tuple[int, int], int] = {}   # profile objects written this boot
         self._bootups_at_connect = 0
         self._connected_at = 0.0
+        self._configured = False           # this driver armed the node (connect completed)
         self._homing = HomingState.IDLE
         self._fault_cache: tuple[int, int, str, tuple[str, ...]] | None = None
         self._warnings: tuple[float, tuple[str, ...]] = (0.0, ())
         self._pdo_statusword: dict[int, int] = {}    # COB-ID -> statusword of its last TxPDO
+        self._statusword_seen = (0, 0.0)             # (newest TxPDO statusword, when it came)
         self._burst_given_up: int | None = None
 
     def _prefix(self) -> str:
         return f'{self.name} (node {self.node_id}): '
 
     # ------------------------------------------------------------------ controlword / PDO access
+    @property
+    def _cw(self) -> int:
+        """The controlword last commanded (the driver's intent; never read back)."""
+        return self.cia.controlword or 0
+
     def _values(self) -> dict[int, Any]:
         node = self.link.node
         if node is None:
@@ -155,7 +197,6 @@ class VectorStepDrive(Drive):
             pdo = node.rpdo[2]
             pdo[vm.TARGET_POSITION].raw = self._target
         pdo[vm.CONTROLWORD].raw = cw
-        self._cw = cw
         self.can.transactions += 1
         self.can.send(pdo.cob_id, bytes(pdo.data))
 
@@ -173,105 +214,175 @@ class VectorStepDrive(Drive):
     def _value(self, index: int, default: int = 0) -> int:
         return int(self._values().get(index, default))
 
-    def _write_once(self, index: int, sub: int, value: int) -> None:
-        """SDO write of a profile object, skipped when this boot already wrote the value."""
-        if self._written.get((index, sub)) != value:
-            self.link.write(index, sub, value)
-            self._written[(index, sub)] = value
+    def _write_once(self, *writes: tuple[int, int, int]) -> Steps[None]:
+        """SDO writes of profile objects, each skipped when this boot already wrote the value;
+        one per step."""
+        for index, sub, value in writes:
+            if self._written.get((index, sub)) != value:
+                self.link.write(index, sub, value)
+                self._written[(index, sub)] = value
+                yield 0.0
+
+    def _checked(self, index: int, sub: int, value: int, what: str) -> int:
+        """`value` if the object can hold it (its type and the EDS limits), else DriveError
+        naming the object: checked before anything of a command is sent."""
+        obj = OBJECTS[(index, sub)]
+        rtype = register_type(obj.data_type)
+        low, high = (-(1 << (rtype.bits - 1)), (1 << (rtype.bits - 1)) - 1) if rtype.signed \
+            else (0, (1 << rtype.bits) - 1)
+        eds_low, eds_high = self.link.limits(index, sub)
+        low = low if eds_low is None else max(low, eds_low)
+        high = high if eds_high is None else min(high, eds_high)
+        if not low <= value <= high:
+            raise DriveError(f'{what}: {value} is outside {obj} ({low}..{high})')
+        return value
 
     # ------------------------------------------------------------------ life cycle
-    def connect(self) -> dict[str, str]:
+    def connect(self) -> Steps[dict[str, str]]:
+        self._configured = False
         self.link.attach()
         self.link.emcy = None
         self._written.clear()
         self._fault_cache = None
         self._homing = HomingState.IDLE
         try:
-            self._ping()
+            yield from self._ping()
             rebooted = False
         except LinkError:
             # A node in NMT STOPPED does not answer SDO (CiA 301), an NMT reset reaches it.
-            if not self.link.reset_and_wait_bootup(
-                    'RESET COMMUNICATION', min(self.boot_timeout_s, RESCUE_BOOT_WAIT_S)):
+            ok = yield from self.link.reset_and_wait_bootup(
+                'RESET COMMUNICATION', min(self.boot_timeout_s, RESCUE_BOOT_WAIT_S))
+            if not ok:
                 raise
             rebooted = True
+        identity = yield from self._identity()   # before any write: is it the drive we know?
         # A defined start: communication objects back to the manual's defaults, then boot-up.
-        if not rebooted and \
-                not self.link.reset_and_wait_bootup('RESET COMMUNICATION', self.boot_timeout_s):
-            self._ping()          # CiA 301 wants a boot-up here; go on if the node answers
-            logger.warning('%sno boot-up frame within %g s after NMT reset communication; the '
-                           'node answers SDO, continuing', self._prefix(), self.boot_timeout_s)
-        identity = self._identity()
-        self.link.write(vm.PRODUCER_HEARTBEAT_TIME, 0, self.heartbeat_ms)
-        self._configure_pdos()
-        self._seed()
+        if not rebooted:
+            ok = yield from self.link.reset_and_wait_bootup('RESET COMMUNICATION',
+                                                            self.boot_timeout_s)
+            if not ok:
+                yield from self._ping()   # CiA 301 wants a boot-up here; go on if it answers
+                logger.warning('%sno boot-up frame within %g s after NMT reset communication; '
+                               'the node answers SDO, continuing', self._prefix(),
+                               self.boot_timeout_s)
+        # Error control and the drive-side watchdogs, lost at every boot (DS-301 objects are
+        # not saved [GESTIONE MEMORIA NON VOLATILE]): a missing SYNC for 0x1006 us is alarm
+        # Ralarm32 bit 18 and its reaction (Ralarmreact 0x471E); a missing heartbeat of ours
+        # (0x1016) only lights the LED [STATO DEL LED FLD].
+        for index, sub, value in (
+                (vm.PRODUCER_HEARTBEAT_TIME, 0, self.heartbeat_ms),
+                (vm.COMMUNICATION_CYCLE_PERIOD, 0, round(self.sync_timeout_s * 1e6)),
+                (vm.CONSUMER_HEARTBEAT_TIME, 1, self.consumer_heartbeat)):
+            yield 0.0
+            self.link.write(index, sub, value)
+        yield from self._configure_pdos()
+        yield from self._seed()
         self._bootups_at_connect = self.link.bootups
         self._connected_at = time.monotonic()
         self.link.nmt('OPERATIONAL')
-        if self.heartbeat_ms and not self.link.wait_heartbeat_state(
-                0x05, self._connected_at, self.heartbeat_timeout_s + self.heartbeat_ms / 1000.0):
-            raise LinkError(f'{self._prefix()}no heartbeat showing OPERATIONAL after NMT start '
-                            f'(producer {self.heartbeat_ms} ms)')
+        if self.heartbeat_ms:
+            ok = yield from self.link.wait_heartbeat_state(
+                0x05, self._connected_at, self.heartbeat_timeout_s + self.heartbeat_ms / 1000.0)
+            if not ok:
+                raise LinkError(f'{self._prefix()}no heartbeat showing OPERATIONAL after NMT '
+                                f'start (producer {self.heartbeat_ms} ms)')
         state = cia402.decode_state(self._read_statusword())
-        self._cw = HOLD_CW.get(state, cia402.CW_DISABLE_VOLTAGE)
-        self.cia.controlword = self._cw
+        self.cia.controlword = HOLD_CW.get(state, cia402.CW_DISABLE_VOLTAGE)
         self._mode_cmd = self._value(vm.MODES_OF_OPERATION_DISPLAY)
         self._target = self._value(vm.POSITION_ACTUAL_VALUE)
         if state == State.OPERATION_ENABLED and \
                 self._read_statusword() & vm.SW_BIT_MOTOR_MOVING:
             logger.warning('%sstill moving after (re)connecting: stopping it', self._prefix())
             self.stop()
+        self._configured = True
         return identity
 
-    def _ping(self) -> None:
+    def _ping(self) -> Steps[None]:
         """SDO read of 0x1000 with retries: a missing node fails fast, before any NMT."""
         last: LinkError | None = None
-        timeout, self.link.node.sdo.RESPONSE_TIMEOUT = self.link.node.sdo.RESPONSE_TIMEOUT, \
-            min(PING_TIMEOUT_S, self.can.timeout_s)
+        sdo = self.link.node.sdo
+        timeout, sdo.RESPONSE_TIMEOUT = sdo.RESPONSE_TIMEOUT, min(PING_TIMEOUT_S,
+                                                                  self.can.timeout_s)
         try:
-            for _ in range(max(self.boot_retries, 1)):
+            for attempt in range(max(self.boot_retries, 1)):
+                if attempt:
+                    yield 0.0
                 try:
                     self.link.read(vm.DEVICE_TYPE)
                     return
                 except LinkError as exc:
                     last = exc
         finally:
-            self.link.node.sdo.RESPONSE_TIMEOUT = timeout
+            sdo.RESPONSE_TIMEOUT = timeout
         raise LinkError(f'{self._prefix()}no answer on {self.can.description} after '
                         f'{self.boot_retries} tries ({last})')
 
-    def _identity(self) -> dict[str, str]:
+    def _identity(self) -> Steps[dict[str, str]]:
+        """Identity [DEVICE TYPE], [IDENTITY OBJECT]; IdentityError when the node is not a
+        Vector Step or lacks an AEC register the driver needs."""
         device_type = int(self.link.read(vm.DEVICE_TYPE))
         if device_type & 0xFFFF != vm.DEVICE_PROFILE_DS402:
-            raise DriveError(f'{self._prefix()}device type 0x{device_type:08X} is not a DSP-402 '
-                             'drive (expected 0x00040192)')
+            raise IdentityError(f'{self._prefix()}0x1000 device type reads 0x{device_type:08X}: '
+                                f'not a DSP-402 drive (a Vector Step reads '
+                                f'0x{vm.DEVICE_TYPE_VALUE:08X})')
+        yield 0.0
         vendor = int(self.link.read(vm.IDENTITY_OBJECT, 1))
         if vendor != vm.VENDOR_ID_AEC:
-            logger.warning('%svendor ID 0x%08X is not AEC (0x000000BC)', self._prefix(), vendor)
+            raise IdentityError(f'{self._prefix()}0x1018:01 vendor-ID reads 0x{vendor:08X}, '
+                                f'not AEC (0x{vm.VENDOR_ID_AEC:08X}): not a Vector Step')
+        yield 0.0
         product = int(self.link.read(vm.IDENTITY_OBJECT, 2))
-        identity = {
-            'node_id': str(self.node_id),
-            'device_name': str(self.link.read(vm.MANUFACTURER_DEVICE_NAME)).strip('\0 '),
-            'software': str(self.link.read(vm.MANUFACTURER_SOFTWARE_VERSION)).strip('\0 '),
-            'vendor_id': f'0x{vendor:08X}',
-            'product_code': f'0x{product:08X} ({vm.PRODUCT_CODES.get(product, "unknown")})',
-            'revision': f'0x{int(self.link.read(vm.IDENTITY_OBJECT, 3)):08X}',
-            'serial': str(self.link.read(vm.IDENTITY_OBJECT, 4)),
-            'Rstpres': str(self.link.read(vm.RSTPRES, vm.AEC_SUB)),
-            'heartbeat_ms': str(self.heartbeat_ms),
+        if product not in vm.PRODUCT_CODES:
+            known = ', '.join(f'0x{c:08X} ({n})' for c, n in vm.PRODUCT_CODES.items())
+            raise IdentityError(f'{self._prefix()}0x1018:02 product code reads 0x{product:08X}, '
+                                f'not a Vector Step of the manual ({known})')
+        texts: dict[str, str] = {}
+        for key, index, sub in (('device_name', vm.MANUFACTURER_DEVICE_NAME, 0),
+                                ('software', vm.MANUFACTURER_SOFTWARE_VERSION, 0),
+                                ('revision', vm.IDENTITY_OBJECT, 3),
+                                ('serial', vm.IDENTITY_OBJECT, 4)):
+            yield 0.0
+            value = self.link.read(index, sub)
+            texts[key] = f'0x{value:08X}' if key == 'revision' else str(value).strip('\0 ')
+        registers: dict[int, int] = {}
+        for index in REQUIRED_REGISTERS:
+            yield 0.0
+            registers[index] = self._probe(index)
+        return {
+            'node_id': str(self.node_id), 'device_name': texts['device_name'],
+            'software': texts['software'], 'vendor_id': f'0x{vendor:08X}',
+            'product_code': f'0x{product:08X} ({vm.PRODUCT_CODES[product]})',
+            'revision': texts['revision'], 'serial': texts['serial'],
+            'Rstpres': str(registers[vm.RSTPRES]), 'heartbeat_ms': str(self.heartbeat_ms),
+            'sync_timeout_s': f'{self.sync_timeout_s:g}',
         }
-        return identity
 
-    def _configure_pdos(self) -> None:
+    def _probe(self, index: int) -> int:
+        """Read an AEC register (sub 1) that must exist: -1 for a write-only one that does."""
+        obj = OBJECTS[(index, vm.AEC_SUB)]
+        try:
+            return int(self.link.read(index, vm.AEC_SUB, expected_aborts=(
+                vm.ABORT_NOT_READABLE, vm.ABORT_NO_OBJECT, vm.ABORT_NO_SUBINDEX)))
+        except SdoAbortError as exc:
+            if exc.code == vm.ABORT_NOT_READABLE:         # write only (Rcmdwr): it exists
+                return -1
+            if exc.code in (vm.ABORT_NO_OBJECT, vm.ABORT_NO_SUBINDEX):
+                raise IdentityError(f'{self._prefix()}{obj} is missing ({exc}): not the Vector '
+                                    'Step firmware this driver knows (it needs that register)'
+                                    ) from None
+            raise
+
+    def _configure_pdos(self) -> Steps[None]:
         for number, entries in enumerate(vm.DRIVER_RPDOS, 1):
-            self.link.configure_pdo('rx', number, entries)
-        self.link.configure_pdo('rx', 4, ())
+            yield from self.link.configure_pdo('rx', number, entries)
+            yield 0.0
+        yield from self.link.configure_pdo('rx', 4, ())
         for number, entries in enumerate(vm.DRIVER_TPDOS, 1):
-            timer = self.event_timer_ms if number == 2 else None
-            self.link.configure_pdo('tx', number, entries, 0xFE, event_timer_ms=timer or 0,
-                                    inhibit_time_100us=0)
+            yield 0.0
+            timer = self.event_timer_ms if number == 2 else 0
+            yield from self.link.configure_pdo('tx', number, entries, 0xFE,
+                                               event_timer_ms=timer)
         self.link.node.setup_pdos(upload=False)
-        self._pdo_statusword.clear()
         for number in range(1, len(vm.DRIVER_TPDOS) + 1):   # before the link's notifying one
             pdo = self.link.node.tpdo[number]
             if self._on_tpdo not in pdo.callbacks:
@@ -279,30 +390,60 @@ class VectorStepDrive(Drive):
         self.link.watch_tpdos()
 
     def _on_tpdo(self, pdo_map) -> None:
-        # every DRIVER_TPDOS mapping starts with the statusword
-        self._pdo_statusword[pdo_map.cob_id] = int.from_bytes(bytes(pdo_map.data[:2]), 'little')
+        # (receive thread) every DRIVER_TPDOS mapping starts with the statusword
+        sw = int.from_bytes(bytes(pdo_map.data[:2]), 'little')
+        self._pdo_statusword[pdo_map.cob_id] = sw
+        if sw != self._statusword_seen[0]:
+            self._statusword_seen = (sw, time.monotonic())
 
-    def _wait_for_burst(self) -> None:
+    def _coherent(self) -> bool:
+        return len(set(self._pdo_statusword.values())) <= 1
+
+    def _wait_for_burst(self) -> Steps[None]:
         """A statusword change goes out in every TxPDO, back to back. Until the last of those
         frames is in, the others hold values from before the change (velocity, Rstsflg's homed
-        bit, the position after homing): wait for them, bounded, so one snapshot is coherent."""
-        def coherent():
-            return len(set(self._pdo_statusword.values())) <= 1
-        newest = self._values().get(vm.STATUSWORD)
-        if coherent() or newest == self._burst_given_up:
+        bit, the position after homing): wait for them, as long as the bus needs to carry them
+        at its bit rate, so one snapshot is coherent."""
+        newest, since = self._statusword_seen
+        if self._coherent() or newest == self._burst_given_up:
             return
-        if not self.link.wait(coherent, BURST_WAIT_S):
+        bound_s = len(vm.DRIVER_TPDOS) * max(self.can.drive_count, 1) * FRAME_BITS \
+            / self.can.bitrate + BURST_SLACK_S
+        if not (yield from self.link.wait(self._coherent, since + bound_s - time.monotonic())):
             # a frame of the burst is lost: do not slow every poll down until the next change
             self._burst_given_up = newest
+            logger.warning('%sTxPDO burst of statusword 0x%04X incomplete after %.3f s (%s): '
+                           'this snapshot mixes it with older values', self._prefix(), newest,
+                           bound_s, ', '.join(f'0x{c:03X}: 0x{sw:04X}' for c, sw
+                                              in sorted(self._pdo_statusword.items())))
 
-    def _seed(self) -> None:
+    def _seed(self) -> Steps[None]:
         """Current values by SDO, so the cache is right before the first TxPDO arrives."""
         values = self._values()
-        for index, sub, _bits in {e for pdo in vm.DRIVER_TPDOS for e in pdo}:
+        for index, sub, _bits in sorted({e for pdo in vm.DRIVER_TPDOS for e in pdo}):
+            yield 0.0
             values[index] = self.link.read(index, sub)
+        sw = int(values[vm.STATUSWORD])
+        self._pdo_statusword = {pdo.cob_id: sw for pdo in self.link.node.tpdo.values()
+                                if pdo.enabled}
+        self._statusword_seen = (sw, time.monotonic())
+        self._burst_given_up = None
 
     def close(self) -> None:
+        """Orderly end (the node shuts down): disarm the drive-side watchdogs, so that a drive
+        left standing does not fault when the SYNC stops with the bus. Nothing is written to a
+        drive that is not answering (it then stops by itself, which is the point)."""
         self._homing = HomingState.IDLE
+        if not self._configured or not self.link.attached:
+            return                           # never armed, or not ours (IdentityError)
+        try:
+            self._check_alive()
+            for index, sub in ((vm.COMMUNICATION_CYCLE_PERIOD, 0),
+                               (vm.CONSUMER_HEARTBEAT_TIME, 1)):
+                self.link.write(index, sub, 0)
+        except DriveError as exc:
+            logger.info('%swatchdogs left armed at close: %s', self._prefix(), exc)
+        self._configured = False
 
     # ------------------------------------------------------------------ state
     def _check_alive(self) -> None:
@@ -326,16 +467,19 @@ class VectorStepDrive(Drive):
             raise LinkError(f'{self._prefix()}heartbeat reports NMT state 0x{nmt:02X}, not '
                             'OPERATIONAL: reconnecting')
 
-    def read_state(self) -> DriveState:
+    def read_state(self) -> Steps[DriveState]:
         self._check_alive()
-        self._wait_for_burst()
+        yield from self._wait_for_burst()
         values = self._values()
         sw = int(values.get(vm.STATUSWORD, 0))
         mode = int(values.get(vm.MODES_OF_OPERATION_DISPLAY, 0))
         rstsflg = int(values.get(vm.RSTSFLG, 0))
+        position = int(values.get(vm.POSITION_ACTUAL_VALUE, 0))
+        velocity = int(values.get(vm.VELOCITY_ACTUAL_VALUE, 0))
+        error_register = int(values.get(vm.ERROR_REGISTER, 0))
         state = cia402.decode_state(sw)
         fault = state in (State.FAULT, State.FAULT_REACTION_ACTIVE)
-        code, text, alarms = (self._fault(state) if fault else (0, '', ()))
+        code, text, alarms = (yield from self._fault()) if fault else (0, '', ())
         if not fault:
             self._fault_cache = None
         homing = self._homing_state(sw, mode)
@@ -345,17 +489,13 @@ class VectorStepDrive(Drive):
         emcy = self.link.emcy
         if homing == HomingState.ERROR and emcy is not None and emcy.code in vm.HOME_ERROR_CODES:
             extra.append(f'EMCY 0x{emcy.code:04X}: {emcy.text}')
-        if int(values.get(vm.ERROR_REGISTER, 0)) & vm.ERROR_REGISTER_COMMUNICATION and \
+        if error_register & vm.ERROR_REGISTER_COMMUNICATION and \
                 emcy is not None and 0x8100 <= emcy.code <= 0x82FF:
             extra.append(f'EMCY 0x{emcy.code:04X}: {emcy.text}')
         moving = bool(sw & vm.SW_BIT_MOTOR_MOVING)
-        velocity_hz = vm.hz_from_rps100(int(values.get(vm.VELOCITY_ACTUAL_VALUE, 0)),
-                                        self.steps_per_rev)
-        if not moving:
-            # Every TxPDO carries the statusword, only TxPDO3 the velocity: a read between the
-            # frames of one stop would pair the new standstill with the last speed. Bit 8
-            # ("Motor moving", theoretical) off means the profile velocity is zero.
-            velocity_hz = 0.0
+        # Bit 8 ("Motor moving", theoretical) off means the profile velocity is zero; TxPDO3
+        # may still hold the last speed of a stop whose burst was given up.
+        velocity_hz = vm.hz_from_rps100(velocity, self.steps_per_rev) if moving else 0.0
         return DriveState(
             state=state, enabled=state == State.OPERATION_ENABLED,
             moving=moving,
@@ -363,8 +503,7 @@ class VectorStepDrive(Drive):
             homed=bool(rstsflg & vm.RSTSFLG_HOMED), homing=homing, fault=fault,
             fault_code=code, fault_text=text, alarms=tuple(extra),
             mode=vm.MODE_NAMES.get(mode, f'mode {mode}'), status_word=sw,
-            position_steps=int(values.get(vm.POSITION_ACTUAL_VALUE, 0)),
-            velocity_steps_s=velocity_hz)
+            position_steps=position, velocity_steps_s=velocity_hz)
 
     def _homing_state(self, sw: int, mode: int) -> HomingState:
         """AEC homing bits: 12 "Home eseguito", 13 "Errore in azzeramento" ([STATUSWORD]).
@@ -386,7 +525,7 @@ class VectorStepDrive(Drive):
             self._homing = HomingState.IDLE
         return self._homing
 
-    def _fault(self, state: State) -> tuple[int, str, tuple[str, ...]]:
+    def _fault(self) -> Steps[tuple[int, str, tuple[str, ...]]]:
         """(code, text, alarms) of the current fault; SDO reads once per fault (and EMCY)."""
         count = self.link.emcy_count
         if self._fault_cache is not None and self._fault_cache[0] == count:
@@ -397,19 +536,11 @@ class VectorStepDrive(Drive):
         else:
             code = int(self.link.read(vm.ERROR_CODE))
             text = vm.emcy_text(code)
-        alarms: tuple[str, ...] = ()
-        ralarm = 0
-        for index in (vm.RALARM32, vm.RALARM):   # the 32-bit register, else the 16-bit one
-            try:
-                ralarm = int(self.link.read(index, vm.AEC_SUB))
-                break
-            except LinkError:
-                raise
-            except DriveError:
-                continue
+            yield 0.0
+        ralarm = int(self.link.read(vm.RALARM32, vm.AEC_SUB))
+        alarms = tuple(vm.RALARM_BITS.get(b, f'alarm bit {b}') for b in range(32)
+                       if ralarm & (1 << b))
         if ralarm:
-            alarms = tuple(vm.RALARM_BITS.get(b, f'alarm bit {b}') for b in range(32)
-                           if ralarm & (1 << b))
             text = f'{text}: {", ".join(alarms)} (Ralarm32 0x{ralarm:08X})'
         self._fault_cache = (count, code, text, alarms)
         return code, text, alarms
@@ -421,33 +552,34 @@ class VectorStepDrive(Drive):
                 value = int(self.link.read(vm.RWARNING, vm.AEC_SUB))
                 texts = tuple(f'warning: {vm.RWARNING_BITS.get(b, f"bit {b}")}'
                               for b in range(16) if value & (1 << b))
-            except DriveError:
+            except SdoAbortError:
                 texts = ('warning (statusword bit 7)',)
             self._warnings = (time.monotonic(), texts)
         return texts
 
     # ------------------------------------------------------------------ power stage
-    def enable(self) -> None:
+    def enable(self) -> Steps[None]:
         sw = self._read_statusword()
         state = cia402.decode_state(sw)
         if state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
-            code, text, _ = self._fault(state)
+            code, text, _ = yield from self._fault()
             raise DriveError(f'{self._prefix()}in FAULT 0x{code:04X} ({text}); call fault_reset '
                              'first')
         if state == State.OPERATION_ENABLED:
             return
         self._target = self._value(vm.POSITION_ACTUAL_VALUE)     # nothing moves on enable
         self._homing = HomingState.IDLE
-        base = HOLD_CW.get(state, cia402.CW_DISABLE_VOLTAGE)
         if self._mode_cmd != vm.MODE_PROFILE_POSITION or \
                 self._value(vm.MODES_OF_OPERATION_DISPLAY) != vm.MODE_PROFILE_POSITION:
-            self._command(base, mode=vm.MODE_PROFILE_POSITION)
+            self._command(HOLD_CW.get(state, cia402.CW_DISABLE_VOLTAGE),
+                          mode=vm.MODE_PROFILE_POSITION)
         try:
-            self.cia.bring_to(State.OPERATION_ENABLED, ENABLE_TIMEOUT_S)
+            yield from self.cia.bring_to(State.OPERATION_ENABLED, ENABLE_TIMEOUT_S)
         except DriveError as exc:
-            raise DriveError(f'cannot enable: {exc}{self._why_not_enabled()}') from None
+            why = yield from self._why_not_enabled()
+            raise DriveError(f'cannot enable: {exc}{why}') from None
 
-    def _why_not_enabled(self) -> str:
+    def _why_not_enabled(self) -> Steps[str]:
         """The manual's registers that explain a power stage that does not come on."""
         reasons = []
         try:
@@ -456,6 +588,7 @@ class VectorStepDrive(Drive):
                 reasons.append('STO active (Rstsflg1 bit 15)')
             if sts1 & vm.RSTSFLG1_POWER_OFF:
                 reasons.append('Power_OFF signal (Rstsflg1 bit 2)')
+            yield 0.0
             ralarm = int(self.link.read(vm.RALARM32, vm.AEC_SUB))
             if ralarm:
                 reasons.append(f'alarms {vm.bit_texts(ralarm, vm.RALARM_BITS)} '
@@ -469,29 +602,36 @@ class VectorStepDrive(Drive):
         return '; the power stage is blocked: ' + '; '.join(reasons) + \
             ' (check the motor supply and the STO inputs)'
 
-    def disable(self) -> None:
+    def disable(self) -> Steps[None]:
         state = cia402.decode_state(self._read_statusword())
         self._homing = HomingState.IDLE
         if state in (State.SWITCH_ON_DISABLED, State.FAULT, State.FAULT_REACTION_ACTIVE,
                      State.NOT_READY_TO_SWITCH_ON):
             return
-        self.cia.bring_to(State.SWITCH_ON_DISABLED, DISABLE_TIMEOUT_S)
+        yield from self.cia.bring_to(State.SWITCH_ON_DISABLED, DISABLE_TIMEOUT_S)
 
     def _require_enabled(self, what: str) -> None:
+        """OPERATION ENABLED as the drive says: its last TxPDO when the event timer of TxPDO2
+        keeps them fresh, else the statusword by SDO."""
+        self._check_alive()
         sw = self._read_statusword()
+        at = self.link.tpdo_at
+        if not self.event_timer_ms or at is None or \
+                time.monotonic() - at > 2 * self.event_timer_ms / 1000.0:
+            sw = self._barrier()
         state = cia402.decode_state(sw)
         if state != State.OPERATION_ENABLED:
             raise DriveError(f'{what}: the drive is not enabled ({cia402.describe(sw)}); call '
                              'enable first')
 
-    def _ensure_mode(self, mode: int) -> None:
+    def _ensure_mode(self, mode: int) -> Steps[None]:
         """0x6060 by RxPDO1 (with the controlword that holds OPERATION ENABLED, bits 4-6 low),
         then wait until 0x6061 (TxPDO1) shows it."""
         if self._mode_cmd == mode and self._value(vm.MODES_OF_OPERATION_DISPLAY) == mode:
             return
         self._command(CW_ENABLE_OPERATION, mode=mode)
-        ok = self.link.wait(lambda: self._value(vm.MODES_OF_OPERATION_DISPLAY) == mode,
-                            MODE_SWITCH_TIMEOUT_S)
+        ok = yield from self.link.wait(
+            lambda: self._value(vm.MODES_OF_OPERATION_DISPLAY) == mode, MODE_SWITCH_TIMEOUT_S)
         if not ok:                           # no TxPDO1 on the change: ask once by SDO
             display = int(self.link.read(vm.MODES_OF_OPERATION_DISPLAY))
             self._values()[vm.MODES_OF_OPERATION_DISPLAY] = display
@@ -502,51 +642,75 @@ class VectorStepDrive(Drive):
                              f'= {mode} ({vm.MODE_NAMES[mode]})')
 
     # ------------------------------------------------------------------ motion
-    def _rps100(self, velocity_steps_s: float, what: str) -> int:
+    def _rps100(self, velocity_steps_s: float, index: int, sub: int, what: str) -> int:
+        """A speed in the drive's unit (0.01 rev/s, always positive), checked for the object."""
         value = vm.rps100_from_hz(abs(velocity_steps_s), self.steps_per_rev)
         if velocity_steps_s and value == 0:
             raise DriveError(f'{what} {velocity_steps_s:.4g} steps/s is below the drive\'s '
                              f'resolution of 0.01 rev/s ({self.steps_per_rev / 100.0:g} steps/s)')
-        return value
+        return self._checked(index, sub, value, f'{what} {velocity_steps_s:.6g} steps/s')
 
-    def _rps2x10(self, acceleration: float) -> int:
-        return max(vm.rps2x10_from_hz_s(acceleration, self.steps_per_rev), 1)   # min 1 (0x6083)
+    def _rps2x10(self, acceleration_steps_s2: float, index: int, what: str) -> int:
+        """An acceleration in the drive's unit (0.1 rev/s^2), checked for the object."""
+        value = vm.rps2x10_from_hz_s(acceleration_steps_s2, self.steps_per_rev)
+        if acceleration_steps_s2 > 0 and value == 0:
+            raise DriveError(f'{what} {acceleration_steps_s2:.4g} steps/s^2 is below the '
+                             f'drive\'s resolution of 0.1 rev/s^2 '
+                             f'({self.steps_per_rev / 10.0:g} steps/s^2)')
+        return self._checked(index, 0, value, f'{what} {acceleration_steps_s2:.6g} steps/s^2')
 
-    def move_to(self, target_steps: int, motion: Motion) -> None:
-        self._require_enabled('move')
-        if not INT32[0] <= target_steps <= INT32[1]:
-            raise DriveError(f'target {target_steps} steps is outside 0x607A (INTEGER32)')
-        velocity = self._rps100(motion.velocity_steps_s, 'profile velocity')
+    def _profile(self, motion: Motion) -> tuple[int, int]:
+        return (self._rps2x10(motion.acceleration_steps_s2, vm.PROFILE_ACCELERATION,
+                              'profile acceleration'),
+                self._rps2x10(motion.deceleration_steps_s2, vm.PROFILE_DECELERATION,
+                              'profile deceleration'))
+
+    def move_to(self, target_steps: int, motion: Motion) -> Steps[None]:
+        target = self._checked(vm.TARGET_POSITION, 0, int(target_steps),
+                               'target position [steps]')
+        velocity = self._rps100(motion.velocity_steps_s, vm.PROFILE_VELOCITY, 0,
+                                'profile velocity')
         if velocity == 0:
             raise DriveError('profile velocity is 0: the move would not run')
-        self._ensure_mode(vm.MODE_PROFILE_POSITION)
+        acceleration, deceleration = self._profile(motion)
+        self._require_enabled('move')
+        yield from self._ensure_mode(vm.MODE_PROFILE_POSITION)
         self._homing = HomingState.IDLE
-        self._write_once(vm.PROFILE_VELOCITY, 0, velocity)
-        self._write_once(vm.PROFILE_ACCELERATION, 0, self._rps2x10(motion.acceleration_steps_s2))
-        self._write_once(vm.PROFILE_DECELERATION, 0, self._rps2x10(motion.deceleration_steps_s2))
-        self._target = int(target_steps)
+        yield from self._write_once((vm.PROFILE_VELOCITY, 0, velocity),
+                                    (vm.PROFILE_ACCELERATION, 0, acceleration),
+                                    (vm.PROFILE_DECELERATION, 0, deceleration))
+        self._target = target
         # New set-point, change set immediately (bit 5), absolute (bit 6 = 0): the handshake of
         # CiA 402 on bits 4 / 12 [CONTROLWORD], [STATUSWORD].
-        self.cia.start_set_point(CW_ENABLE_OPERATION, relative=False, immediate=True,
-                                 timeout_s=HANDSHAKE_TIMEOUT_S)
+        yield from self.cia.start_set_point(CW_ENABLE_OPERATION, relative=False, immediate=True,
+                                            timeout_s=HANDSHAKE_TIMEOUT_S)
 
-    def set_velocity(self, velocity_steps_s: float, motion: Motion) -> None:
-        self._require_enabled('velocity')
-        units = self._rps100(velocity_steps_s, 'velocity')
+    def set_velocity(self, velocity_steps_s: float, motion: Motion) -> Steps[None]:
+        units = self._rps100(velocity_steps_s, vm.PROFILE_VELOCITY, 0, 'velocity')
         jog = self._mode_cmd == vm.MODE_JOG and \
             self._value(vm.MODES_OF_OPERATION_DISPLAY) == vm.MODE_JOG
-        if units == 0:
-            if jog:
-                self._write_once(vm.PROFILE_DECELERATION, 0,
-                                 self._rps2x10(motion.deceleration_steps_s2))
-                self._command(CW_ENABLE_OPERATION)           # bit 4 = 0: "0 = Stop"
-            else:
+        if units == 0:                        # a stop: never refused, see stop()
+            if not jog or cia402.decode_state(self._read_statusword()) != \
+                    State.OPERATION_ENABLED:
                 self.stop()
+                return
+            try:
+                deceleration = self._rps2x10(motion.deceleration_steps_s2,
+                                             vm.PROFILE_DECELERATION, 'profile deceleration')
+                yield from self._write_once((vm.PROFILE_DECELERATION, 0, deceleration))
+            except DriveError as exc:         # a stop is never refused: the drive's own ramp
+                if isinstance(exc, LinkError):
+                    raise
+                logger.warning('%sJOG stop on the deceleration 0x6084 holds: %s',
+                               self._prefix(), exc)
+            self._command(CW_ENABLE_OPERATION)           # bit 4 = 0: "0 = Stop"
             return
-        self._ensure_mode(vm.MODE_JOG)
+        acceleration, deceleration = self._profile(motion)
+        self._require_enabled('velocity')
+        yield from self._ensure_mode(vm.MODE_JOG)
         self._homing = HomingState.IDLE
-        self._write_once(vm.PROFILE_ACCELERATION, 0, self._rps2x10(motion.acceleration_steps_s2))
-        self._write_once(vm.PROFILE_DECELERATION, 0, self._rps2x10(motion.deceleration_steps_s2))
+        yield from self._write_once((vm.PROFILE_ACCELERATION, 0, acceleration),
+                                    (vm.PROFILE_DECELERATION, 0, deceleration))
         cw = CW_ENABLE_OPERATION | vm.CW_BIT_JOG_START | vm.CW_BIT_JOG_SPEED_CONTINUOUS
         if velocity_steps_s < 0:
             cw |= vm.CW_BIT_JOG_CCW                 # CCW = negative counting (assumption)
@@ -559,6 +723,8 @@ class VectorStepDrive(Drive):
         self._command(cw, velocity=units)
 
     def stop(self, quick: bool = False) -> None:
+        """One frame: JOG bit 4 low, else the Rcmdwr STOP/ABORT bit (during homing also bit 4
+        low, which ends the homing run); never waits."""
         sw = self._read_statusword()
         if cia402.decode_state(sw) != State.OPERATION_ENABLED:
             return
@@ -568,58 +734,77 @@ class VectorStepDrive(Drive):
         else:
             # No halt bit (CW bit 8 is reserved): the AEC command register, one bit per write.
             self.link.write(vm.RCMDWR, vm.AEC_SUB, vm.RCMDWR_ABORT if quick else vm.RCMDWR_STOP)
-            if self._cw & MODE_BITS:
-                self._command(CW_ENABLE_OPERATION)
+            if self._cw & CW_BIT_NEW_SET_POINT:    # bit 4: homing start (a falling edge ends
+                self._command(CW_ENABLE_OPERATION)  # the run), JOG start, PP new set-point
         if self._homing == HomingState.RUNNING:
             self._homing = HomingState.IDLE
 
-    def start_homing(self, homing: Homing) -> str:
+    def start_homing(self, homing: Homing) -> Steps[str]:
         method = int(homing.method)
         if method not in vm.HOMING_METHODS:
             raise DriveError(f'homing method {method} is not a Vector Step method '
                              f'({vm.HOMING_METHODS_TEXT})')
-        self._require_enabled('home')
-        search = self._rps100(homing.speed_search_steps_s, 'homing search speed')
-        zero = self._rps100(homing.speed_zero_steps_s, 'homing zero speed')
-        if method not in (0, 35, 37) and not (search and zero):
+        search = self._rps100(homing.speed_search_steps_s, vm.HOMING_SPEEDS, 1,
+                              'homing search speed')
+        zero = self._rps100(homing.speed_zero_steps_s, vm.HOMING_SPEEDS, 2, 'homing zero speed')
+        if method not in ON_THE_SPOT_METHODS and not (search and zero):
             raise DriveError(f'homing method {method} needs search and zero speeds > 0')
-        if not INT32[0] <= homing.offset_steps <= INT32[1]:
-            raise DriveError(f'homing offset {homing.offset_steps} is outside 0x607C (INTEGER32)')
-        self._ensure_mode(vm.MODE_HOMING)
+        acceleration = self._rps2x10(homing.acceleration_steps_s2, vm.HOMING_ACCELERATION,
+                                     'homing acceleration')
+        offset = self._checked(vm.HOME_OFFSET, 0, int(homing.offset_steps),
+                               'homing offset [steps]')
+        self._require_enabled('home')
+        note = f'method {method}: {vm.HOMING_METHODS[method]}'
+        if method not in ON_THE_SPOT_METHODS and search > zero:
+            # "Deve essere una velocita' nel range di start/stop" (Rhvl 0x2055 = 0x6099:02): a
+            # faster zero search ramps down after the home point and stops past it.
+            end_velocity = int(self.link.read(vm.END_VELOCITY))
+            if zero > end_velocity:
+                past = homing.speed_zero_steps_s ** 2 / (2 * homing.acceleration_steps_s2)
+                warning = (f'zero search speed 0x6099:02 (Rhvl) {zero} x 0.01 rev/s is above '
+                           f'the start/stop speed 0x6082 = {end_velocity}: the manual wants it '
+                           f'within the start/stop range, so the axis stops about '
+                           f'{past:.0f} steps past the home point (it still reads 0x607C '
+                           'there); set 0x6082 >= 0x6099:02 or lower homing.speed_zero')
+                logger.warning('%shoming: %s', self._prefix(), warning)
+                note += f'; warning: {warning}'
+            yield 0.0
+        yield from self._ensure_mode(vm.MODE_HOMING)
         self.link.write(vm.HOMING_METHOD, 0, method)          # raw AEC number, not the library's
-        self._write_once(vm.HOMING_SPEEDS, 1, search)
-        self._write_once(vm.HOMING_SPEEDS, 2, zero)
-        self._write_once(vm.HOMING_ACCELERATION, 0, self._rps2x10(homing.acceleration_steps_s2))
-        self.link.write(vm.HOME_OFFSET, 0, int(homing.offset_steps))  # position forced after
+        yield 0.0
+        yield from self._write_once((vm.HOMING_SPEEDS, 1, search), (vm.HOMING_SPEEDS, 2, zero),
+                                    (vm.HOMING_ACCELERATION, 0, acceleration))
+        self.link.write(vm.HOME_OFFSET, 0, offset)             # position forced after homing
         if self._cw & CW_BIT_NEW_SET_POINT:
             self._command(CW_ENABLE_OPERATION)
+        yield 0.0
         if self.link.emcy is not None and self.link.emcy.code in vm.HOME_ERROR_CODES:
             self.link.emcy = None
         self._command(CW_ENABLE_OPERATION | vm.CW_BIT_HOMING_START)   # rising edge starts
         self._homing = HomingState.RUNNING
         self._barrier()
-        note = f'method {method}: {vm.HOMING_METHODS[method]}'
-        if homing.offset_steps:
-            note += f'; position after homing {homing.offset_steps} steps (0x607C)'
+        if offset:
+            note += f'; position after homing {offset} steps (0x607C)'
         return note
 
     # ------------------------------------------------------------------ maintenance
-    def fault_reset(self) -> str:
+    def fault_reset(self) -> Steps[str]:
         """The manual's procedure [SEGNALAZIONE DI ERRORE]: (1) the cause is gone, (2) 0x1003:00
         = 0, (3) back to operation enable, which starts with transition 15 (bit 7 rising edge)."""
-        sw = self._read_statusword()
-        state = cia402.decode_state(sw)
+        state = cia402.decode_state(self._read_statusword())
         if state not in (State.FAULT, State.FAULT_REACTION_ACTIVE):
             self.link.write(vm.PRE_DEFINED_ERROR_FIELD, 0, 0)
             self.link.emcy = None
             return ''
-        code, text, _ = self._fault(state)
+        code, text, _ = yield from self._fault()
         for attempt in range(2):
+            yield 0.0
             if attempt:
                 # "Per resettare gli allarmi scrivere 0 in questo registro" (Ralarm32).
                 self.link.write(vm.RALARM32, vm.AEC_SUB, 0)
+                yield 0.0
             self.link.write(vm.PRE_DEFINED_ERROR_FIELD, 0, 0)
-            sw = self.cia.fault_reset(FAULT_RESET_TIMEOUT_S)
+            sw = yield from self.cia.fault_reset(FAULT_RESET_TIMEOUT_S)
             if cia402.decode_state(sw) not in (State.FAULT, State.FAULT_REACTION_ACTIVE):
                 self.link.emcy = None
                 self._fault_cache = None
@@ -628,28 +813,30 @@ class VectorStepDrive(Drive):
                             cia402.describe(sw))
                 return ''
         self._fault_cache = None
-        code, text, _ = self._fault(cia402.decode_state(sw))
+        yield 0.0
+        code, text, _ = yield from self._fault()
         return (f'0x{code:04X} {text}: still in {cia402.describe(sw)} after 0x1003:00 = 0 and '
                 f'the controlword bit 7 edge; remove the cause first')
 
-    def save_params(self) -> str:
+    def save_params(self) -> Steps[str]:
         start = time.monotonic()
         self.link.write(vm.RLOADSAV, vm.AEC_SUB, vm.RLOADSAV_SAVE_REGISTERS)
         while True:
+            yield SAVE_POLL_S              # poll rate of a register that has no event
             value = int(self.link.read(vm.RLOADSAV, vm.AEC_SUB))
             if value == 0:                  # "Il registro viene azzerato quando il comando e'
                 break                       # stato eseguito"
             if time.monotonic() - start > SAVE_TIMEOUT_S:
                 raise DriveError(f'save: Rloadsav 0x20C2:01 still reads 0x{value:02X} after '
                                  f'{SAVE_TIMEOUT_S:g} s')
-            time.sleep(SAVE_POLL_S)        # poll rate of a register that has no event
         elapsed = time.monotonic() - start
+        yield 0.0
         reepsts = int(self.link.read(vm.REEPSTS, vm.AEC_SUB))
         if reepsts:
             raise DriveError(f'save failed: Reepsts 0x{reepsts:04X} '
                              f'({vm.bit_texts(reepsts, vm.REEPSTS_BITS)})')
         return (f'Rloadsav 0x81 (save registers to EEPROM) done in {elapsed:.2f} s, Reepsts 0; '
-                'PDO mapping and heartbeat are not stored (written at every boot)')
+                'PDO mapping, heartbeat and watchdogs are not stored (written at every boot)')
 
     def read_register(self, address: str, data_type: str) -> int | str:
         index, sub = parse_address(address)
@@ -688,6 +875,17 @@ PARAMS = (
               max_value=65535),
     ParamSpec('can.eds_file', '', "EDS of the drives ('' = config/vector_step.eds of the package)",
               scope='bus'),
+    ParamSpec('can.sync_period_s', 0.1, 'SYNC (COB-ID 0x080) sent by this node while the bus is '
+              'open, every this many seconds: the drives watch it (sync_timeout_s) and stop when '
+              'the node or the bus dies [s]; 0 = no SYNC', scope='bus', min_value=0.0,
+              max_value=10.0),
+    ParamSpec('can.master_node_id', 127, "node-ID of this node's own heartbeat (no drive may "
+              'have it)', scope='bus', min_value=1, max_value=127),
+    ParamSpec('can.master_heartbeat_ms', 100, "this node's heartbeat (0x700 + "
+              'can.master_node_id, OPERATIONAL) every this many ms; each drive watches it '
+              f'(0x1016, {MASTER_HEARTBEAT_PERIODS} periods) for its LED and EMCY 0x8130 only '
+              '[ms]; 0 = none', scope='bus', min_value=0,
+              max_value=0xFFFF // MASTER_HEARTBEAT_PERIODS),
     ParamSpec('node_id', 1, 'CANopen node-ID (rotary switches + Rcanaddr; 125 with switches 00)',
               min_value=1, max_value=127),
     ParamSpec('heartbeat_period_ms', 100, 'producer heartbeat time 0x1017 written at every boot '
@@ -695,9 +893,13 @@ PARAMS = (
               max_value=65535),
     ParamSpec('heartbeat_timeout_s', 1.0, 'no heartbeat for this long: link lost, reconnect [s]',
               min_value=0.01, max_value=60.0),
+    ParamSpec('sync_timeout_s', 0.5, 'drive-side watchdog, written to 0x1006 at every boot: no '
+              'SYNC for this long is the drive alarm "missing SYNC" (Ralarm32 bit 18), which '
+              f'stops the axis on its emergency ramp [s]; at least {SYNC_TIMEOUT_MIN_PERIODS} x '
+              'can.sync_period_s; 0 = off', min_value=0.0, max_value=60.0),
     ParamSpec('tpdo_event_timer_ms', 100, 'event timer of TxPDO2 (statusword + position): sent '
-              'at least this often besides on change [ms]; 0 = on change only', min_value=0,
-              max_value=65535),
+              'at least this often besides on change [ms]; 0 = on change only (then a motion '
+              'command first reads the statusword by SDO)', min_value=0, max_value=65535),
     ParamSpec('boot_timeout_s', 2.0, 'wait for the boot-up after NMT reset communication [s]',
               min_value=0.05, max_value=60.0),
     ParamSpec('boot_retries', 3, 'SDO pings before a connect attempt gives up', min_value=1,
@@ -708,7 +910,10 @@ PARAMS = (
 def make_bus(params: Mapping[str, Any]) -> CanBus:
     return CanBus(interface=str(params['can.interface']), channel=str(params['can.channel']),
                   bitrate=int(params['can.bitrate']), host=str(params['can.host']),
-                  port=int(params['can.port']), timeout_s=float(params['timeout_s']))
+                  port=int(params['can.port']), timeout_s=float(params['timeout_s']),
+                  sync_period_s=float(params['can.sync_period_s']),
+                  master_node_id=int(params['can.master_node_id']),
+                  master_heartbeat_ms=int(params['can.master_heartbeat_ms']))
 
 
 def make_drive(bus: Bus, name: str, params: Mapping[str, Any]) -> VectorStepDrive:
