@@ -158,3 +158,30 @@ def test_silent_server_times_out_then_reopens():
         assert b.counters()['timeouts'] == 1 and b.errors == 1
         b.close()
         assert not b.is_open
+
+
+def test_a_connection_reset_by_the_peer_is_a_link_error_in_one_line():
+    """A server that accepts and then resets (RST) the connection: pymodbus lets the
+    ConnectionResetError through, which used to end in a traceback (issue 10 item 8)."""
+    import struct
+    with socket.socket() as listener:
+        listener.bind(('127.0.0.1', 0))
+        listener.listen()
+        port = listener.getsockname()[1]
+        b = ModbusTcpBus('127.0.0.1', port, timeout_s=1.0)
+        b.open()
+        peer, _ = listener.accept()
+
+        def reset_after_the_request():
+            peer.recv(260)                # the request arrived: now reset, with no reply
+            peer.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack('ii', 1, 0))
+            peer.close()                  # linger 0: the close sends RST
+        server = threading.Thread(target=reset_after_the_request)
+        server.start()
+        with pytest.raises(LinkError, match=rf'127.0.0.1:{port} unit 1: FC03 read of 1 at '
+                                            r'1001: ') as err:
+            b.read_registers(1, 1001, 1)
+        server.join()
+        assert '\n' not in str(err.value)
+        assert b.errors == 1
+        b.close()

@@ -149,6 +149,10 @@ class ModbusTcpBus(drive.Bus):
                 self.errors += 1
                 raise drive.LinkError(f'{self.host}:{self.port} unit {unit_id}: {what}: '
                                       f'{exc}') from exc
+            except OSError as exc:   # pymodbus lets a reset connection through (issue 10)
+                self.errors += 1
+                raise drive.LinkError(f'{self.host}:{self.port} unit {unit_id}: {what}: '
+                                      f'{exc.strerror or exc!r}') from exc
             if reply.isError():
                 self.errors += 1
                 self.exceptions += 1
