@@ -6,10 +6,11 @@ timing is off except where the test is about it (it makes a 9600 baud line 20x s
 """
 
 import math
+import time
 
 from diagnostic_msgs.msg import DiagnosticStatus
 import pytest
-from rosharness import DriveBench, bad_parameter_output, wait_for
+from rosharness import DriveBench, Track, bad_parameter_output, wait_for, watchdog_bound_s
 from stepper_drivers_msgs.srv import ReadRegister, WriteRegister
 
 NODE = '/xmind_k_node'
@@ -95,11 +96,14 @@ def test_three_drives_move_home_with_line_timing_and_busy_silence(procs, ros, tm
 
 def test_velocity_change_and_watchdog_stop(bench):
     bench.enable('axis1')
+    track = Track(bench.ros, bench.true_topic('axis1'))
+    last_command = [0.0]
 
     def commanding(velocity, cond, what):
         """Keep commanding (as a client does, faster than command_timeout_s) until cond."""
         def check():
             bench.command('axis1', 'velocity_command', velocity)
+            last_command[0] = time.monotonic()
             return cond()
         wait_for(check, 10.0, what, period_s=0.1)
 
@@ -111,9 +115,14 @@ def test_velocity_change_and_watchdog_stop(bench):
     commanding(-6.0, lambda: bench.status('axis1').velocity < -5.0, 'running backwards')
     p1 = bench.fresh_true_steps('axis1')
     commanding(-6.0, lambda: bench.fresh_true_steps('axis1') < p1 - 50, 'true position falling')
-    # no more commands: the watchdog stops it (ES)
-    st = bench.status('axis1', lambda m: not m.moving, timeout_s=5.0, what='watchdog stop')
-    bench.node.wait_line('velocity watchdog', 5.0)
+    # no more commands: the watchdog stops it (ES). command_timeout_s 0.5 (config), 20 Hz polls
+    # (this bench), 400 rad/s^2, and at 9600 baud one string in flight (up to ~61 ms) plus the
+    # ES itself (~26 ms)
+    bound_s = watchdog_bound_s(0.5, 20.0, 6.0, 400.0, 0.1)
+    still_at = track.wait_still(0.3, bound_s + 3.0, 'axis1 stopped')
+    assert still_at - last_command[0] <= bound_s, (still_at - last_command[0], bound_s)
+    st = bench.status('axis1', lambda m: not m.moving, timeout_s=1.0, what='watchdog stop')
+    bench.node.wait_line('velocity watchdog', 1.0)
     still = bench.fresh_true_steps('axis1')
     assert bench.fresh_true_steps('axis1') == still
     st = bench.status('axis1', lambda m: not m.position_estimated)
