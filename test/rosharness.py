@@ -137,7 +137,8 @@ class DriveBench:
         """The simulator's ~/inject_fault; it must accept the fault."""
         from stepper_drivers_msgs.srv import InjectFault
         r = self.ros.call(InjectFault, self.sim_ns + '/inject_fault',
-                          InjectFault.Request(drive=drive, kind=kind, code=code, value=value))
+                          InjectFault.Request(drive=drive, kind=kind, code=int(code),
+                                              value=float(value)))
         assert r.success, r.message
         return r
 

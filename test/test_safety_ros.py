@@ -37,6 +37,8 @@ RATE_HZ = {'xplus_mt': 50.0, 'rd4': 20.0, 'xmind_k': 20.0, 'vector_step': 50.0}
 # One line transaction: what may be in flight when the watchdog fires (X-MIND K at 9600 baud
 # is the slowest: about 30 ms; a Python simulator on a shared machine answers later).
 TRANSACTION_S = {'xplus_mt': 0.01, 'rd4': 0.05, 'xmind_k': 0.06, 'vector_step': 0.02}
+# The simulators move their axes in ticks: a stop acts at the next one.
+SIM_TICK_S = {'xplus_mt': 0.02, 'rd4': 0.01, 'xmind_k': 0.05, 'vector_step': 0.02}
 
 
 def make_bench(vendor, procs, ros, tmp_path, node_args=()):
@@ -87,7 +89,7 @@ def test_commands_refused_during_a_velocity_run_leave_the_watchdog_armed(
     st = bench.status('axis1')
     assert st.watchdog_armed, 'a refused command disarmed the watchdog'
     bound_s = watchdog_bound_s(timeout_s, RATE_HZ[vendor], RUN_RAD_S[vendor],
-                               DECEL_RAD_S2[vendor], TRANSACTION_S[vendor])
+                               DECEL_RAD_S2[vendor], TRANSACTION_S[vendor]) + SIM_TICK_S[vendor]
     still_at = track.wait_still(0.3, bound_s + 3.0, f'{vendor} axis1 stopped')
     assert still_at - t_cmd <= bound_s, (still_at - t_cmd, bound_s)
     bench.status('axis1', lambda m: not m.watchdog_armed and not m.moving,
@@ -130,7 +132,6 @@ def test_velocity_commands_from_several_publishers_ending_with_zero_leave_it_sto
 DRIVE_WATCHDOG_S = {'xplus_mt': 1.0,      # register 1097 = watchdog_ms 1000
                     'rd4': 1.0,           # the unit's fixed 1 s watchdog (Control Word bit 8)
                     'vector_step': 0.5}   # 0x1006 = sync_timeout_s 0.5
-SIM_TICK_S = {'xplus_mt': 0.02, 'rd4': 0.01, 'vector_step': 0.02}
 STOP_DECEL_RAD_S2 = {'xplus_mt': math.inf, 'rd4': 12.0, 'vector_step': 200.0}
 
 

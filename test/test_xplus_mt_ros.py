@@ -430,3 +430,32 @@ def test_one_node_serves_drives_on_several_hosts(procs, ros, tmp_path):
                      + 1, 5.0, 'axis2 status going on')
     assert b.connected and b.link_reconnects == 0
     assert node.stop() == 0
+
+
+def test_a_velocity_write_whose_reply_is_lost_is_still_watched(procs, ros, tmp_path):
+    """The velocity write reaches the drive but its reply is lost: the node must assume it ran
+    (the watchdog was armed before the write) and stop it once the drive answers again."""
+    bench = Bench(procs, ros, tmp_path, node_args=(
+        '-p', 'drives.axis1.watchdog_ms:=0'))     # the node's watchdog, not the drive's
+    bench.enable('axis1')
+    track = Track(bench.ros, bench.true_topic('axis1'))
+    # the controlword write with New Set Point (bit 4) starts the run (PV, A10): its reply is
+    # lost; the write itself takes effect
+    bench.inject('axis1', 'lose_write_reply', code=1040, value=0x0010)
+    bench.command('axis1', 'velocity_command', 3.0)
+    t_cmd = time.monotonic()
+    p0 = bench.fresh_true_steps('axis1')
+    wait_for(lambda: bench.fresh_true_steps('axis1') > p0 + 100, 5.0, 'the drive runs')
+    # the node loses the link on that write (timeout_s 0.5, config/xplus_mt.yaml) and
+    # reconnects; by then command_timeout_s (0.5 s) is past, and the watchdog, armed before the
+    # write, stops the drive as soon as it answers again: the one transaction, the stop ramp,
+    # the simulator's tick and one true-position sample after the reconnect
+    still_at = track.wait_still(0.3, 10.0, 'axis1 stopped')
+    bench.node.wait_line('velocity watchdog', 1.0)
+    wall_minus_mono = time.time() - time.monotonic()
+    (line,) = [ln for ln in bench.node.output().splitlines()
+               if 'axis1: connected' in ln][1:2]          # the reconnect
+    reconnected_at = float(line.split('[')[2].split(']')[0]) - wall_minus_mono
+    bound_s = 0.01 + 3.0 / 200.0 + 0.02 + Track.SAMPLE_S
+    assert 0.5 <= reconnected_at - t_cmd          # the write's timeout, then the reconnect
+    assert still_at - reconnected_at <= bound_s, (still_at - reconnected_at, bound_s)

@@ -103,7 +103,10 @@ HV_STABLE_S = 0.5               # §12 transition 3: HV present >= 500 ms before
 START_STOP_HZ = xm.START_STOP_MAX_HZ
 REGISTER_BLOCK = (1000, 270)    # 1000..1269: the manual's whole address range (spec §2.8)
 LINK_KINDS = ('no_reply', 'late_reply', 'corrupt_reply', 'cut', 'link_ok')
-DRIVE_KINDS = ('drive_fault', 'clear_fault', 'hv_off', 'hv_on')
+DRIVE_KINDS = ('drive_fault', 'clear_fault', 'hv_off', 'hv_on', 'lose_write_reply')
+# 'lose_write_reply': the next write of register `code` whose word has every bit of `value`
+# set takes effect, but its reply is held this long: lost to a master with a shorter timeout
+LOST_REPLY_HOLD_S = 2.0
 INPUT_NAMES = ('home', 'limit_neg', 'limit_pos', 'I0', 'I1', 'I2', 'I3')
 
 # Output Config (1089) -> functions of O0, O1, O2 (T23 S4, T25 B4); 'gp' = general purpose.
@@ -190,6 +193,7 @@ class XplusMtDevice:
         self.storage_dir = storage_dir or None
         self._clock = clock
         self._lock = threading.RLock()
+        self.lose_write_reply: tuple[int, int] | None = None   # (register, bits)
         now = clock()
         self.power_on_s = now
         self.axis = SimAxis(home_switch_steps=_none_if_nan(config.home_switch_steps),
@@ -959,6 +963,11 @@ class XplusMtDevice:
                 elif self.state == FAULT:
                     self._fault_causes.add(0x5100)
                 return True, f'{self.name}: HV off; state {self.state}'
+            if kind == 'lose_write_reply':
+                self.lose_write_reply = (int(code), int(value))
+                return True, (f'{self.name}: the next write of {int(code)} with bits '
+                              f'0x{int(value):04X} set takes effect, its reply is held '
+                              f'{LOST_REPLY_HOLD_S:g} s')
             if kind == 'hv_on':
                 if not self.hv_present:
                     self.hv_present, self._hv_since = True, now
@@ -1276,7 +1285,13 @@ class XplusMtSim:
         if self.line_timing and self.reply_latency_s > 0:
             await asyncio.sleep(self.reply_latency_s)
         if set_values is not None:
-            return dev.write(address, [int(v) for v in set_values])
+            values = [int(v) for v in set_values]
+            result = dev.write(address, values)
+            lose = dev.lose_write_reply
+            if lose is not None and lose[0] == address and values[0] & lose[1] == lose[1]:
+                dev.lose_write_reply = None
+                await asyncio.sleep(LOST_REPLY_HOLD_S)     # written, but no timely answer
+            return result
         if function_code == 6:
             return None     # pymodbus reads back after FC06: echo what was written
         words = dev.read(address, count)

@@ -57,6 +57,18 @@ def wait_for(cond: Callable[[], Any], timeout_s: float = 5.0, what: str = 'condi
         time.sleep(period_s)
 
 
+def _die_with_parent() -> None:
+    """In the child before exec: SIGKILL it when the process that started it dies (Linux
+    PR_SET_PDEATHSIG). A test process that aborts cannot run its clean-up; its simulators and
+    nodes would live on in its ROS domain and answer the next test run in their place."""
+    import ctypes
+    PR_SET_PDEATHSIG = 1
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
+    except (OSError, AttributeError):   # not Linux: the normal clean-up has to do
+        pass
+
+
 class Proc:
     """A project executable run as its own process group, output in a log file."""
 
@@ -66,7 +78,8 @@ class Proc:
         self.log_path = log_dir / f'{name}.log'
         self.log_file = open(self.log_path, 'wb')
         self.proc = subprocess.Popen(args, stdout=self.log_file, stderr=subprocess.STDOUT,
-                                     start_new_session=True, env={**os.environ, **(env or {})})
+                                     start_new_session=True, env={**os.environ, **(env or {})},
+                                     preexec_fn=_die_with_parent)
 
     @property
     def pid(self) -> int:
