@@ -12,6 +12,7 @@ import pathlib
 import signal
 import socket
 import subprocess
+import threading
 import time
 from typing import Any, Callable
 
@@ -58,9 +59,10 @@ def wait_for(cond: Callable[[], Any], timeout_s: float = 5.0, what: str = 'condi
 
 
 def _die_with_parent() -> None:
-    """In the child before exec: SIGKILL it when the process that started it dies (Linux
-    PR_SET_PDEATHSIG). A test process that aborts cannot run its clean-up; its simulators and
-    nodes would live on in its ROS domain and answer the next test run in their place."""
+    """In the child before exec: SIGKILL it when the thread that started it ends (Linux
+    PR_SET_PDEATHSIG; used for the main thread, i.e. the process). A test process that aborts
+    cannot run its clean-up; its simulators and nodes would live on in its ROS domain and
+    answer the next test run in their place."""
     import ctypes
     PR_SET_PDEATHSIG = 1
     try:
@@ -79,7 +81,11 @@ class Proc:
         self.log_file = open(self.log_path, 'wb')
         self.proc = subprocess.Popen(args, stdout=self.log_file, stderr=subprocess.STDOUT,
                                      start_new_session=True, env={**os.environ, **(env or {})},
-                                     preexec_fn=_die_with_parent)
+                                     # the death signal follows the starting *thread*: only
+                                     # the main thread lives as long as the process
+                                     preexec_fn=_die_with_parent
+                                     if threading.current_thread() is threading.main_thread()
+                                     else None)
 
     @property
     def pid(self) -> int:
