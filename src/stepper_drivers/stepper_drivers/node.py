@@ -697,9 +697,13 @@ class DriveNode(Node):
             # the vendor's own rules: homing methods, and rules that tie a drive to the poll
             # rate (RD4: the 1 s watchdog must be fed)
             if bus_changes or 'homing.method' in mine:
+                # on an unopened bus of its own: the live one belongs to its owner thread
+                link = {**self._drive_bus_params(h.cfg), **bus_changes}
+                own = {k: v for k, v in h.cfg.params.items()
+                       if k not in self.vendor.drive_bus_params}
                 try:
-                    self.vendor.make_drive(h.sup.bus, h.name, {
-                        **self.bus_params, **bus_changes, **h.cfg.params, **mine})
+                    self.vendor.make_drive(self.vendor.make_bus(link), h.name,
+                                           {**link, **own, **mine})
                 except ValueError as e:
                     return SetParametersResult(successful=False, reason=str(e))
         return SetParametersResult(successful=True)
