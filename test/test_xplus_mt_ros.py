@@ -417,6 +417,11 @@ def test_one_node_serves_drives_on_several_hosts(procs, ros, tmp_path):
         s.name.startswith('xplus_mt_node: link') for s in a.status) == 2, what='two links')
     links = sorted(s.hardware_id for s in diag.status if s.name.startswith('xplus_mt_node: link'))
     assert links == sorted(f'modbus tcp 127.0.0.1:{p}' for p in ports)
+    # one joint_states for the node, not one per link
+    from sensor_msgs.msg import JointState
+    ros.subscribe(JointState, '/joint_states')
+    js = ros.wait_msg('/joint_states')
+    assert list(js.name) == ['xplus_joint1', 'xplus_joint2']
     r = ros.call(SetBool, f'{NODE}/axis2/enable', SetBool.Request(data=True))
     assert r.success, r.message
     ros.publish(Float64, f'{NODE}/axis2/position_command', Float64(data=1.0))

@@ -121,6 +121,9 @@ class DriveNode(Node):
         self.supervisors: list[BusSupervisor] = []
         self._identities: dict[tuple[str, str], str] = {}    # (key, value) -> drive
         self._identity_lock = threading.Lock()
+        self._js_lock = threading.Lock()       # joint_states: the owner threads take turns
+        self._js_cycled: set[int] = set()
+        self._js_due = 0.0
         self._build_buses()
         self.by_joint = {h.cfg.joint_name: h for h in self.handles.values()}
 
@@ -267,20 +270,13 @@ class DriveNode(Node):
         """Owner thread, after each poll cycle of its bus."""
         if not self.context.ok():
             return
-        handles = [self.handles[n] for n in sup.slots]
         stamp = self.get_clock().now().to_msg()
-        js = JointState()
-        js.header.stamp = stamp
-        for h in handles:
-            js.name.append(h.cfg.joint_name)
-            js.position.append(h.position)
-            js.velocity.append(h.velocity if h.state.velocity_valid else math.nan)
-        if all(h.state.effort is not None for h in handles):
-            js.effort = [float(h.state.effort) for h in handles]
-        self.joint_pub.publish(js)
+        now = time.monotonic()
+        if self._joint_states_due(sup, now):
+            self._publish_joint_states(stamp)
+        handles = [self.handles[n] for n in sup.slots]
         # A status goes out when something in it changed, and at status_rate_hz otherwise:
         # at 50 Hz the messages of idle drives cost more CPU than polling them (issue 9).
-        now = time.monotonic()
         counters = None
         for h in handles:
             key = self._status_key(h)
@@ -291,6 +287,32 @@ class DriveNode(Node):
             self.status_pubs[h.name].publish(self._status_msg(h, stamp, counters))
             h.status_key = key
             h.status_due = now + 1.0 / self.bus_params['status_rate_hz']
+
+    def _joint_states_due(self, sup: BusSupervisor, now: float) -> bool:
+        """One joint_states for the node's drives once every bus that has a connected drive
+        finished a cycle (a node with eight drive hosts publishes one message a period, not
+        eight), or a period after the last one (a bus whose drives are all lost)."""
+        with self._js_lock:
+            self._js_cycled.add(id(sup))
+            live = {id(s) for s in self.supervisors
+                    if any(slot.connected for slot in s.slots.values())}
+            if not (self._js_cycled >= live or now >= self._js_due):
+                return False
+            self._js_cycled = set()
+            self._js_due = now + 1.0 / self.bus_params['publish_rate_hz']
+            return True
+
+    def _publish_joint_states(self, stamp) -> None:
+        handles = list(self.handles.values())
+        js = JointState()
+        js.header.stamp = stamp
+        for h in handles:
+            js.name.append(h.cfg.joint_name)
+            js.position.append(h.position)
+            js.velocity.append(h.velocity if h.state.velocity_valid else math.nan)
+        if all(h.state.effort is not None for h in handles):
+            js.effort = [float(h.state.effort) for h in handles]
+        self.joint_pub.publish(js)
 
     def _status_key(self, h: DriveHandle) -> tuple:
         """The status fields that make a new status worth sending (not the link counters)."""

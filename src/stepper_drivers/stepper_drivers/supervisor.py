@@ -31,6 +31,7 @@ import collections
 import concurrent.futures
 import dataclasses
 import logging
+import math
 import threading
 import time
 import traceback
@@ -144,6 +145,7 @@ class BusSupervisor:
         self._timers: list[tuple[float, Callable[[], None]]] = []
         self._cycle_polled: set[str] = set()
         self._last_cycle_t = 0.0
+        self._grid_t0 = clock()
         self.cycles = 0
 
     # ---------------------------------------------------------------------- other threads
@@ -303,6 +305,14 @@ class BusSupervisor:
     def _period_s(self) -> float:
         return 1.0 / self.settings['publish_rate_hz']
 
+    def _next_grid_t(self, now: float) -> float:
+        """The next poll of a drive polled now: the first point after `now` of one grid of
+        poll periods that every drive of the bus shares, so a cycle's polls run back to back
+        and the owner wakes once a cycle, not once a drive (an overrun skips to the next
+        point: no catch-up burst)."""
+        period = self._period_s()
+        return self._grid_t0 + (math.floor((now - self._grid_t0) / period) + 1) * period
+
     def _next_wake(self, now: float) -> float:
         times = [now + 0.5]
         if not any(s.connected for s in self.slots.values()):
@@ -449,12 +459,12 @@ class BusSupervisor:
                 result = slot.drive.read_state()
                 if is_steps(result):
                     slot.poll_steps = result
-                    slot.next_poll_t = max(slot.next_poll_t + self._period_s(), now)
+                    slot.next_poll_t = self._next_grid_t(now)
                     result = next(result)
                     slot.poll_wake_t = self.clock() + (result or 0.0)
                     return
                 state = result
-                slot.next_poll_t = max(slot.next_poll_t + self._period_s(), now)
+                slot.next_poll_t = self._next_grid_t(now)
             else:
                 delay = next(slot.poll_steps)
                 slot.poll_wake_t = self.clock() + (delay or 0.0)
