@@ -43,6 +43,9 @@ import threading
 import time
 import tty
 
+# Fast DDS discovery stays on this machine (the floor subscriber and the *-ros loops are nodes)
+os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+
 XPLUS_STATE_BLOCK = (1001, 21)       # what XplusMtDrive.read_state() reads (non-strict sim)
 
 
