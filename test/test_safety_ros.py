@@ -18,7 +18,7 @@ import threading
 import time
 
 import pytest
-from rosharness import Track, wait_for, watchdog_bound_s
+from rosharness import MIDDLEWARE_S, Track, wait_for, watchdog_bound_s
 from std_msgs.msg import Float64
 
 import test_rd4_ros
@@ -144,6 +144,6 @@ def test_node_killed_mid_run_the_drive_stops_itself(vendor, procs, ros, tmp_path
     bench.node.proc.send_signal(signal.SIGKILL)
     bench.node.proc.wait(timeout=10)
     bound_s = (DRIVE_WATCHDOG_S[vendor] + SIM_TICK_S[vendor]
-               + RUN_RAD_S[vendor] / STOP_DECEL_RAD_S2[vendor] + Track.SAMPLE_S)
+               + RUN_RAD_S[vendor] / STOP_DECEL_RAD_S2[vendor] + Track.SAMPLE_S + MIDDLEWARE_S)
     still_at = track.wait_still(0.3, bound_s + 3.0, f'{vendor} axis1 stopped by itself')
     assert still_at - t_kill <= bound_s, (still_at - t_kill, bound_s)
