@@ -550,7 +550,7 @@ def test_watchdogs_are_armed_at_connect_and_disarmed_by_an_orderly_close(bench):
     d = bench.connect('axis1')
     node = bench.sim.nodes['axis1']
     assert node._stored(vm.COMMUNICATION_CYCLE_PERIOD) == 500000             # 0.5 s in us
-    assert node._stored(vm.CONSUMER_HEARTBEAT_TIME, 1) == (127 << 16) | 300  # 3 x 100 ms
+    assert node._stored(vm.CONSUMER_HEARTBEAT_TIME, 1) == (127 << 16) | 1000  # 10 x 100 ms
     mark = bench.monitor.mark()
     wait(lambda: len(bench.monitor.since(mark, 0x080)) >= 3, what='SYNC from the node')
     assert (0x77F, b'\x05') in bench.monitor.since(mark)          # the node's heartbeat

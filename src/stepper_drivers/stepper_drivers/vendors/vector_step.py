@@ -58,8 +58,10 @@ RESCUE_BOOT_WAIT_S = 0.5       # boot-up wait after a reset sent to a node that 
 FRAME_BITS = 135
 BURST_SLACK_S = 0.02
 # 0x1016 consumer time: this many periods of the node's own heartbeat ("deve essere settato piu'
-# alto del tempo impostato nel generatore" [CONSUMER HEARTBEAT TIME]).
-MASTER_HEARTBEAT_PERIODS = 3
+# alto del tempo impostato nel generatore" [CONSUMER HEARTBEAT TIME]). 10: 1 s at 100 ms, as the
+# node's own heartbeat_timeout_s; 3 (300 ms) tripped on a loaded 2-core machine when the python-can
+# periodic task was late. It only lights the LED and sends EMCY 0x8130: SYNC is the safety.
+MASTER_HEARTBEAT_PERIODS = 10
 SYNC_TIMEOUT_MIN_PERIODS = 2   # 0x1006 must span this many SYNC periods (jitter of the producer)
 HOLD_CW = {                    # controlword that keeps each state (sent with a mode change)
     State.SWITCH_ON_DISABLED: cia402.CW_DISABLE_VOLTAGE, State.READY_TO_SWITCH_ON:
