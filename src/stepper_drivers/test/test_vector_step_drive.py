@@ -754,6 +754,7 @@ def test_garbage_frames_are_link_errors_in_one_line(bench, caplog):
 def test_motion_commands_are_checked_against_the_objects_range(bench, command, message):
     d = bench.connect('axis1')
     complete(d.enable())
+    bench.monitor.catch_up()     # the enable's last frames recorded before the mark
     mark = bench.monitor.mark()
     with pytest.raises(DriveError, match=message):
         complete(command(d))
