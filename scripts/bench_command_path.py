@@ -33,8 +33,8 @@ its commands.
 Run: source scripts/env.sh && python scripts/bench_command_path.py [--vendor xplus_mt ...]
      [--part latency rate cpu] [--commands N] [--window S] [--json out.json]
 "Before" figures: run this file from another work tree's environment, e.g.
-     git worktree add /tmp/sd_before 4a9d1a6 (built there), then
-     cd /tmp/sd_before && source scripts/env.sh && python /work/main/scripts/bench_command_path.py
+     git worktree add ../before 4a9d1a6 (built there), then
+     cd ../before && source scripts/env.sh && python ../main/scripts/bench_command_path.py
 The executables, configs and project modules then come from that tree (the probes are this
 tree's scripts/bench_cp_relays.py).
 """
