@@ -1,0 +1,176 @@
+"""Vector Step simulator, PDO engine: a mixin of VectorStepNode.
+
+The master's (re)mapping is honoured after every SDO write; TxPDOs on change, on their event timer
+(re-armed at every event), spaced by the inhibit time, on SYNC (types 0..240) or on request
+(252/253); RxPDOs into the object dictionary, applied at once (254/255) or at the next SYNC
+(0..240); EMCY 0x8210/0x8220 on a length error (the manual's assignment).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import logging
+import time
+from typing import Callable
+
+from canopen.sdo.exceptions import SdoAbortedError
+from stepper_drivers.vendors import vector_step_map as vm
+
+from .vector_step_nmt import NMT_INITIALISING, NMT_OPERATIONAL
+
+logger = logging.getLogger(__name__)
+
+
+@dataclasses.dataclass
+class Pdo:
+    number: int
+    direction: str                        # 'rx' or 'tx'
+    cob_id: int = 0
+    valid: bool = False
+    rtr_allowed: bool = True
+    trans_type: int = 0xFE
+    inhibit_100us: int = 0
+    event_timer_ms: int = 0
+    entries: tuple[tuple[int, int, int], ...] = ()
+    last_data: bytes | None = None
+    last_sent: float = -1e9
+    due: float | None = None              # a change waiting for the inhibit time
+    sync_count: int = 0
+    sampled: bytes | None = None           # type 252: data sampled at SYNC
+    pending: bytes | None = None           # synchronous RxPDO waiting for SYNC
+    handler: Callable | None = None
+
+    @property
+    def length(self) -> int:
+        return sum(bits for _, _, bits in self.entries) // 8
+
+
+class PdoEngine:
+    """PDOs of one node (state: VectorStepNode)."""
+
+    def _load_pdos(self) -> None:
+        for pdo in self.rx + self.tx:
+            if pdo.handler is not None:
+                self._unsubscribe(pdo.cob_id, pdo.handler)
+        self.rx, self.tx = [], []
+        for n in range(4):
+            for direction, comm, mapping, out in (
+                    ('rx', vm.RPDO_COMMUNICATION, vm.RPDO_MAPPING, self.rx),
+                    ('tx', vm.TPDO_COMMUNICATION, vm.TPDO_MAPPING, self.tx)):
+                cob = self._stored(comm + n, 1)
+                count = self._stored(mapping + n, 0)
+                pdo = Pdo(n + 1, direction, cob_id=cob & 0x7FF,
+                          valid=not cob & vm.PDO_INVALID and count > 0,
+                          rtr_allowed=not cob & vm.PDO_RTR_NOT_ALLOWED,
+                          trans_type=self._stored(comm + n, 2),
+                          entries=tuple(vm.split_mapping_entry(self._stored(mapping + n, k))
+                                        for k in range(1, count + 1)))
+                if direction == 'tx':
+                    pdo.inhibit_100us = self._stored(comm + n, 3)
+                    pdo.event_timer_ms = self._stored(comm + n, 5)
+                if pdo.valid:
+                    handler = functools.partial(self._on_rpdo if direction == 'rx'
+                                                else self._on_tpdo_request, pdo)
+                    pdo.handler = handler
+                    self._subscribe(pdo.cob_id, handler)
+                out.append(pdo)
+
+    def _encode(self, pdo: Pdo) -> bytes:
+        data = b''
+        for index, sub, bits in pdo.entries:
+            data += self.local.get_data(index, sub)[:bits // 8]
+        return data
+
+    def _send_tpdo(self, pdo: Pdo, now: float, data: bytes | None = None) -> None:
+        data = self._encode(pdo) if data is None else data
+        pdo.last_data, pdo.last_sent, pdo.due = data, now, None
+        self._send(pdo.cob_id, data)
+
+    def _on_tpdo_request(self, pdo: Pdo, can_id: int, data: bytes, timestamp: float) -> None:
+        """RTR for a TxPDO (socketcand carries it as a 0-byte data frame)."""
+        if len(data) != 0:
+            return
+        with self.sim.lock:
+            if self.link_cut or self.nmt_state != NMT_OPERATIONAL or not pdo.rtr_allowed:
+                return
+            self.process()
+            self._send_tpdo(pdo, time.monotonic(),
+                            pdo.sampled if pdo.trans_type == 252 and pdo.sampled else None)
+
+    def _on_rpdo(self, pdo: Pdo, can_id: int, data: bytes, timestamp: float) -> None:
+        with self.sim.lock:
+            if self.link_cut or self.nmt_state != NMT_OPERATIONAL:
+                return
+            if len(data) > pdo.length:
+                self.emcy(vm.EMCY_PDO_TOO_LONG, comm=True)     # the manual's assignment
+                return
+            if len(data) < pdo.length:
+                self.emcy(vm.EMCY_PDO_TOO_SHORT, comm=True)
+                return
+            if pdo.trans_type <= 240:
+                pdo.pending = bytes(data)                      # applied at the next SYNC
+                return
+            self._apply_rpdo(pdo, bytes(data))
+
+    def _apply_rpdo(self, pdo: Pdo, data: bytes) -> None:
+        offset = 0
+        for index, sub, bits in pdo.entries:
+            chunk = data[offset:offset + bits // 8]
+            offset += bits // 8
+            try:
+                self.local.set_data(index, sub, chunk)
+            except SdoAbortedError as exc:
+                logger.info('%s: RxPDO%d 0x%04X:%02X = %s refused: %s', self.name, pdo.number,
+                            index, sub, chunk.hex(), vm.abort_text(exc.code))
+        self.sim.run_after()
+        self.process()
+        self.sim.wake()
+
+    def on_sync(self, now: float) -> None:
+        if self.link_cut or self.nmt_state == NMT_INITIALISING:
+            return
+        if self._sync_timeout_s():
+            self._sync_watch(now)
+        if self.nmt_state != NMT_OPERATIONAL:
+            return
+        for pdo in self.rx:
+            if pdo.valid and pdo.pending is not None:
+                data, pdo.pending = pdo.pending, None
+                self._apply_rpdo(pdo, data)
+        self.process()
+        for pdo in self.tx:
+            if not pdo.valid:
+                continue
+            if pdo.trans_type == 252:
+                pdo.sampled = self._encode(pdo)
+            elif pdo.trans_type == 0:
+                data = self._encode(pdo)
+                if data != pdo.last_data:
+                    self._send_tpdo(pdo, now, data)
+            elif pdo.trans_type <= 240:
+                pdo.sync_count += 1
+                if pdo.sync_count >= pdo.trans_type:
+                    pdo.sync_count = 0
+                    self._send_tpdo(pdo, now)
+
+    def _tpdo_check(self, now: float) -> None:
+        """Event-driven TxPDOs (254/255): on change, spaced by the inhibit time; event timer."""
+        if self.link_cut or self.nmt_state != NMT_OPERATIONAL:
+            return
+        for pdo in self.tx:
+            if not pdo.valid or pdo.trans_type < 0xFE:
+                continue
+            inhibit_s = pdo.inhibit_100us * 1e-4
+            data = self._encode(pdo)
+            if data != pdo.last_data:
+                if now >= pdo.last_sent + inhibit_s:
+                    self._send_tpdo(pdo, now, data)
+                else:
+                    pdo.due = pdo.last_sent + inhibit_s
+            elif pdo.event_timer_ms and now >= pdo.last_sent + pdo.event_timer_ms / 1000.0:
+                period_s = pdo.event_timer_ms / 1000.0
+                due = pdo.last_sent + period_s
+                self._send_tpdo(pdo, now, data)
+                if now - due < period_s:
+                    pdo.last_sent = due       # a late wake-up does not shift the timer's phase
