@@ -72,7 +72,7 @@ class Sim:
 
 def theoretical_poll_s() -> float:
     request = rtu.read_request(1, rtu.FC_READ_INPUT_REGISTERS, 0, POLL_REGISTERS)
-    return (rtu.frame_time_s(len(request.encode()) + request.reply_length, BAUD)
+    return (rtu.frame_time_s(len(rtu.encode(request)) + rtu.reply_length(request), BAUD)
             + 2 * rtu.t35_s(BAUD))
 
 

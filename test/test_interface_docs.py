@@ -18,10 +18,11 @@ import re
 import sys
 
 import pytest
+from stepper_drivers.vendor_table import BY_KEY, KEYS
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 DOC = ROOT / 'docs' / 'interface.md'
-VENDORS = ('xplus_mt', 'rd4', 'xmind_k', 'vector_step')
+VENDORS = KEYS
 DRIVE = 'axis1'
 # rclpy's own per-node interfaces, not part of our contract
 STANDARD = re.compile(r'/(describe_parameters|get_parameters|get_parameter_types|list_parameters|'
@@ -39,11 +40,14 @@ def build_nodes() -> dict:
     from stepper_drivers.params import declare_all
 
     out = {}
-    rclpy.init(args=['doc', '--ros-args', '-p', f'drives:=[{DRIVE}]'])
+    args = ['doc', '--ros-args', '-p', f'drives:=[{DRIVE}]']
+    rclpy.init(args=args)
     try:
         for v in VENDORS:
-            vendor = importlib.import_module(f'stepper_drivers.vendors.{v}').VENDOR
-            node = DriveNode(vendor, f'{v}_node', lambda n, vendor=vendor: declare_all(n, vendor))
+            module = importlib.import_module(BY_KEY[v].module)
+            vendor = module.VENDOR
+            node = DriveNode(vendor, f'{v}_node', lambda n, m=module: declare_all(
+                n, m.VENDOR, args, m.validate))
             try:
                 out[v] = (interfaces(node, f'{v}_node'), params(node, vendor))
             finally:
@@ -165,7 +169,7 @@ def render(nodes: dict) -> dict[str, str]:
         [HEAD] + [_row(n, first[n], DRIVE_PARAMS[i].default) for i, n in enumerate(common_drive)])
     for v in VENDORS:
         _ifaces, ps = nodes[v]
-        vendor = importlib.import_module(f'stepper_drivers.vendors.{v}').VENDOR
+        vendor = importlib.import_module(BY_KEY[v].module).VENDOR
         rows = [_row(n, p) for n, p in ps.items() if p['vendor']]
         lines = [HEAD] + rows
         differ = [(n, ps[n]['value'], DRIVE_PARAMS[i].default)

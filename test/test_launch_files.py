@@ -16,24 +16,30 @@ import types
 
 import pytest
 from rosharness import INSTALL, ROOT
+from stepper_drivers.vendor_table import BY_KEY, KEYS
 import yaml
 
 LAUNCH_DIR = ROOT / 'src' / 'stepper_drivers' / 'launch'
 CONFIG_DIR = ROOT / 'config'
 LAUNCH_FILES = sorted(LAUNCH_DIR.glob('*.launch.py'))
-VENDORS = ('xplus_mt', 'rd4', 'xmind_k', 'vector_step')
+VENDORS = KEYS
 ALLOWED_IMPORTS = ('os', 'launch', 'launch_ros', 'ament_index_python')
 
 
 def console_scripts(package: str) -> set[str]:
-    """Executables of a package, from the NODES list / SIMS dict in its setup.py."""
-    tree = ast.parse((ROOT / 'src' / package / 'setup.py').read_text())
-    for node in ast.walk(tree):
-        if isinstance(node, ast.Assign) and isinstance(node.targets[0], ast.Name) \
-                and node.targets[0].id in ('NODES', 'SIMS'):
-            value = ast.literal_eval(node.value)
-            return set(value)
-    raise AssertionError(f'{package}/setup.py has no NODES or SIMS')
+    """Executables of a package: the console_scripts its setup.py gives setuptools (run with a
+    stand-in `setup`; setup.py reads the vendor table itself)."""
+    import runpy
+    import setuptools
+    captured = {}
+    saved = setuptools.setup
+    setuptools.setup = lambda **kwargs: captured.update(kwargs)
+    try:
+        runpy.run_path(str(ROOT / 'src' / package / 'setup.py'))
+    finally:
+        setuptools.setup = saved
+    return {line.split('=')[0].strip()
+            for line in captured['entry_points']['console_scripts']}
 
 
 EXECUTABLES = {p: console_scripts(p) for p in ('stepper_drivers', 'stepper_sim')}
@@ -160,14 +166,15 @@ def test_vendor_launch_starts_its_simulator_only_with_sim_true(vendor):
             cond = ast.unparse(kw(c, 'condition'))
             assert 'sim' in cond and ('IfCondition' in cond or cond == 'sim'), cond
     # the simulator's link (port, pty, CAN port) is the one the node's params file opens
-    sim_yaml = yaml.safe_load((CONFIG_DIR / f'{vendor}_sim.yaml').read_text())
-    node_yaml = yaml.safe_load((CONFIG_DIR / f'{vendor}.yaml').read_text())
-    sim_p = next(iter(sim_yaml.values()))['ros__parameters']
-    node_p = next(iter(node_yaml.values()))['ros__parameters']
-    key = 'can' if vendor == 'vector_step' else 'port'
-    sim_link = sim_p[key]['port'] if key == 'can' else sim_p['port']
-    node_link = node_p[key]['port'] if key == 'can' else node_p['port']
-    assert sim_link == node_link
+    row = BY_KEY[vendor]
+    links = []
+    for name in (row.sim_params_file, row.params_file):
+        p = next(iter(yaml.safe_load((CONFIG_DIR / name).read_text()).values()))
+        p = p['ros__parameters']
+        for part in row.link_param.split('.'):
+            p = p[part]
+        links.append(p)
+    assert links[0] == links[1], (row.link_param, links)
 
 
 def test_demo_launch_includes_every_vendor():
@@ -469,19 +476,23 @@ def ros2_launch(launch_file: str, sources: dict[str, str] | None = None,
     return started
 
 
+# the arguments of the helper executables the launch files start with sim:=true
+BROKER_ARGS = {'socketcand_broker': ['--port', '29536']}
+
+
 def test_the_demo_starts_every_simulator_and_node_each_with_its_own_params_file():
     assert ros2_launch('demo.launch.py') == {
         **{f'{v}_{kind}': [f'config/{v}{suffix}.yaml'] for v in VENDORS
            for kind, suffix in (('sim', '_sim'), ('node', ''))},
-        'socketcand_broker': ['--port', '29536']}
+        **{h: BROKER_ARGS[h] for v in VENDORS for h in BY_KEY[v].sim_helpers}}
 
 
 @pytest.mark.parametrize('vendor', VENDORS)
 def test_a_vendor_launch_file_alone_starts_its_node_and_with_sim_true_its_simulator(vendor):
     node = {f'{vendor}_node': [f'config/{vendor}.yaml']}
     sim = {f'{vendor}_sim': [f'config/{vendor}_sim.yaml']}
-    if vendor == 'vector_step':
-        sim['socketcand_broker'] = ['--port', '29536']
+    for helper in BY_KEY[vendor].sim_helpers:
+        sim[helper] = BROKER_ARGS[helper]
     assert ros2_launch(f'{vendor}.launch.py') == node
     assert ros2_launch(f'{vendor}.launch.py', sim='true') == {**sim, **node}
     assert ros2_launch(f'{vendor}.launch.py', sim='false', params_file='/cell/line1.yaml') == \

@@ -7,8 +7,9 @@ import re
 
 import pytest
 from rosharness import CONFIG, executable
+from stepper_drivers.vendor_table import KEYS
 
-VENDORS = ('xplus_mt', 'rd4', 'xmind_k', 'vector_step')
+VENDORS = KEYS
 EXECUTABLES = [('stepper_drivers', f'{v}_node') for v in VENDORS] + \
     [('stepper_sim', f'{v}_sim') for v in VENDORS]
 EXIT_TIMEOUT_S = 20.0      # a Python start-up with rclpy takes ~1 s; the machine is shared

@@ -1,12 +1,17 @@
 from glob import glob
+import os
+import runpy
 
 from setuptools import find_packages, setup
 
 package_name = 'stepper_drivers'
+HERE = os.path.dirname(os.path.realpath(__file__))
+# The vendor table, read as a file: setup.py imports neither the package nor rclpy.
+ROWS = runpy.run_path(os.path.join(HERE, 'stepper_drivers', 'vendor_table.py'))['ROWS']
 
-# One line per vendor node: '<exe> = stepper_drivers.entry_points:<function>'.
-NODES = ['xplus_mt_node', 'xmind_k_node', 'rd4_node', 'vector_step_node', 'socketcand_broker',
-         'stepperctl']
+# One console script per vendor node (<key>_node), and the tools:
+# '<exe> = stepper_drivers.entry_points:<function>'.
+NODES = [row.node for row in ROWS] + ['socketcand_broker', 'stepperctl']
 
 setup(
     name=package_name,

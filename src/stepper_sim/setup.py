@@ -1,14 +1,17 @@
 from glob import glob
+import os
+import runpy
 
 from setuptools import find_packages, setup
 
 package_name = 'stepper_sim'
+HERE = os.path.dirname(os.path.realpath(__file__))
+# The vendor table of stepper_drivers, read as a file (no import of either package, no rclpy).
+ROWS = runpy.run_path(os.path.join(HERE, '..', 'stepper_drivers', 'stepper_drivers',
+                                   'vendor_table.py'))['ROWS']
 
-# One line per simulator: '<exe> = stepper_sim.<module>:main'.
-SIMS = {'xplus_mt_sim': 'stepper_sim.xplus_mt_sim:main',
-        'rd4_sim': 'stepper_sim.rd4_sim:main',
-        'xmind_k_sim': 'stepper_sim.xmind_k_sim:main',
-        'vector_step_sim': 'stepper_sim.vector_step_sim:main'}
+# One console script per simulator: '<key>_sim = <row.simulator>'.
+SIMS = {row.sim: row.simulator for row in ROWS}
 
 setup(
     name=package_name,

@@ -25,6 +25,7 @@ import abc
 import dataclasses
 import enum
 import time
+import types
 from typing import Any, Callable, Generator, Mapping, TypeVar
 
 T = TypeVar('T')
@@ -51,7 +52,9 @@ class IdentityError(DriveError):
 
 
 def is_steps(result: Any) -> bool:
-    return isinstance(result, Generator)
+    # types.GeneratorType, not typing.Generator: the ABC check costs microseconds per call,
+    # and the bus owner asks this for every transaction.
+    return isinstance(result, types.GeneratorType)
 
 
 def complete(result: Any, sleep: Callable[[float], None] = time.sleep) -> Any:
@@ -201,6 +204,9 @@ class Drive(abc.ABC):
     """
 
     address: Any = ''   # bus address as the user configured it (unit id, node id, ASCII address)
+    # Velocities up to this are run start-stop, without the profile's ramps (X-PLUS MT); the
+    # trajectory planner needs it to time a move. 0: every move ramps.
+    start_stop_steps_s: float = 0.0
 
     def __init__(self, bus: Bus, name: str, params: Mapping[str, Any]):
         self.bus = bus

@@ -1,16 +1,12 @@
-"""Executables: one function per vendor node. Vendor modules are imported only when used."""
+"""Executables: one function per vendor node, <key>_node, made from the vendor table (console
+scripts in setup.py). Vendor modules are imported only when used."""
 
 from __future__ import annotations
 
 import importlib
 import sys
 
-VENDOR_MODULES = {
-    'xmind_k_node': 'stepper_drivers.vendors.xmind_k',
-    'xplus_mt_node': 'stepper_drivers.vendors.xplus_mt',
-    'rd4_node': 'stepper_drivers.vendors.rd4',
-    'vector_step_node': 'stepper_drivers.vendors.vector_step',
-}
+from .vendor_table import BY_NODE, ROWS
 
 
 def run(exe: str, argv: list[str] | None = None) -> int:
@@ -19,7 +15,8 @@ def run(exe: str, argv: list[str] | None = None) -> int:
     from .node import DriveNode, spin_node
     from .params import ParameterError, declare_all, non_ros_args
 
-    vendor = importlib.import_module(VENDOR_MODULES[exe]).VENDOR
+    module = importlib.import_module(BY_NODE[exe].module)
+    vendor = module.VENDOR
     argv = sys.argv if argv is None else argv
     try:
         extra = non_ros_args(argv)[1:]      # a missing or broken params file fails here
@@ -32,7 +29,7 @@ def run(exe: str, argv: list[str] | None = None) -> int:
         return 2
     rclpy.init(args=argv)
     try:
-        node = DriveNode(vendor, exe, lambda n: declare_all(n, vendor))
+        node = DriveNode(vendor, exe, lambda n: declare_all(n, vendor, argv, module.validate))
     except ParameterError as e:
         print(f'{exe}: {e}', file=sys.stderr, flush=True)
         rclpy.try_shutdown()
@@ -41,20 +38,16 @@ def run(exe: str, argv: list[str] | None = None) -> int:
     return 0
 
 
-def xplus_mt_node() -> None:
-    sys.exit(run('xplus_mt_node'))
+def _executable(exe: str):
+    def main() -> None:
+        sys.exit(run(exe))
+    main.__name__ = main.__qualname__ = exe
+    main.__doc__ = f'The {exe} executable.'
+    return main
 
 
-def xmind_k_node() -> None:
-    sys.exit(run('xmind_k_node'))
-
-
-def rd4_node() -> None:
-    sys.exit(run('rd4_node'))
-
-
-def vector_step_node() -> None:
-    sys.exit(run('vector_step_node'))
+for _row in ROWS:
+    globals()[_row.node] = _executable(_row.node)     # xplus_mt_node(), rd4_node(), ...
 
 
 def socketcand_broker() -> None:

@@ -39,7 +39,7 @@ from stepper_drivers_msgs.srv import ReadRegister, WriteRegister
 
 from .drive import (Drive, DriveError, DriveState, Homing, HomingState, Motion, RefusedError,
                     Vendor)
-from .params import RUNTIME_DRIVE_PARAMS, BusConfig, DriveConfig, ParameterError, check_drive
+from .params import BusConfig, DriveConfig, ParameterError, current_values
 from .supervisor import (COMMAND, MAINTENANCE, STREAM, URGENT, BusSupervisor, Cancelled, Slot,
                          Superseded)
 
@@ -270,9 +270,10 @@ class DriveNode(Node):
         """Owner thread, after each poll cycle of its bus."""
         if not self.context.ok():
             return
-        stamp = self.get_clock().now().to_msg()
+        stamp = None
         now = time.monotonic()
         if self._joint_states_due(sup, now):
+            stamp = self.get_clock().now().to_msg()
             self._publish_joint_states(stamp)
         handles = [self.handles[n] for n in sup.slots]
         # A status goes out when something in it changed, and at status_rate_hz otherwise:
@@ -284,6 +285,8 @@ class DriveNode(Node):
                 continue
             if counters is None:
                 counters = sup.bus.counters()
+            if stamp is None:
+                stamp = self.get_clock().now().to_msg()
             self.status_pubs[h.name].publish(self._status_msg(h, stamp, counters))
             h.status_key = key
             h.status_due = now + 1.0 / self.bus_params['status_rate_hz']
@@ -723,31 +726,13 @@ class DriveNode(Node):
 
     # ----------------------------------------------------------------------------- parameters
     def on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
-        """Validate runtime changes (ranges are checked by rclpy); cross-field rules here."""
-        bus_changes = {p.name: p.value for p in params if p.name in self.bus_params}
-        for h in self.handles.values():
-            prefix = f'drives.{h.name}.'
-            mine = {p.name[len(prefix):]: p.value for p in params if p.name.startswith(prefix)}
-            if mine:
-                values = {n: h.param(n) for n in RUNTIME_DRIVE_PARAMS}
-                values.update(mine)
-                try:
-                    check_drive(prefix, values)
-                except ParameterError as e:
-                    return SetParametersResult(successful=False, reason=str(e))
-            # the vendor's own rules: homing methods, and rules that tie a drive to the poll
-            # rate (RD4: the 1 s watchdog must be fed)
-            if bus_changes or 'homing.method' in mine:
-                # on an unopened bus of its own: the live one belongs to its owner thread
-                link = {**self._drive_bus_params(h.cfg), **bus_changes}
-                own = {k: v for k, v in h.cfg.params.items()
-                       if k not in self.vendor.drive_bus_params}
-                try:
-                    self.vendor.make_drive(self.vendor.make_bus(link), h.name,
-                                           {**link, **own, **mine})
-                except ValueError as e:
-                    return SetParametersResult(successful=False, reason=str(e))
-        return SetParametersResult(successful=True)
+        """Refuse a run-time change that breaks a rule: the start-up rules (self.cfg.validate,
+        pure: no drive or bus is built) on the current values with the changes applied. rclpy
+        has checked ranges and read-only already."""
+        values = current_values(self)
+        values.update((p.name, p.value) for p in params)
+        errors = self.cfg.validate(values)
+        return SetParametersResult(successful=not errors, reason=errors[0] if errors else '')
 
     def after_set_parameters(self, params: list[Parameter]) -> None:
         for p in params:

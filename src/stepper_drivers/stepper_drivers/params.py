@@ -1,18 +1,26 @@
 """Parameter declaration and validation for every vendor node.
 
 Each parameter is declared with a description and a range (rclpy checks ranges at declaration,
-params file included). Anything wrong ends start-up with one `ParameterError` line naming the
-parameter, the value and what is allowed. The result is plain dataclasses; the node keeps reading
-the runtime-changeable values (profile, limits, rates) from the node, so `ros2 param set` takes
-effect at the next command.
+params file included). The rules between parameters are one pure function, `validate(params)`
+(the common rules here, then the vendor module's `validate`), on every parameter of the node by
+name: start-up runs it on the declared values, `DriveNode.on_set_parameters` on the current
+values with a `ros2 param set` change applied (BusConfig.validate). Anything wrong ends start-up
+with one `ParameterError` line naming the parameter, the value and what is allowed. The result is
+plain dataclasses; the node keeps reading the runtime-changeable values (profile, limits, rates)
+from the node, so `ros2 param set` takes effect at the next command.
+
+What the ROS arguments give the node (for int-as-float, unknown names and the values in error
+messages) is read from the arguments themselves (`given_parameters`), not from rclpy's private
+`Node._parameter_overrides`.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import re
-from typing import Any, Iterable, Sequence
+from typing import Any, Callable, Iterable, Mapping, Sequence
 
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
 from rclpy.exceptions import (InvalidParameterTypeException, InvalidParameterValueException,
@@ -21,7 +29,9 @@ from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.utilities import remove_ros_args
+import yaml
 
+from . import param_rules
 from .drive import ParamSpec, Vendor
 from .units import UnitConversion
 
@@ -65,6 +75,98 @@ def _ros_args_problem(rcl_error: str) -> str:
     except OSError as e:
         return f'params file {path}: cannot be read ({e.strerror})'
     return f'params file {path}: not a ROS 2 params file ({why})'
+
+
+# Values as rcl reads a params file: YAML scalars without the null resolver ('~' is the string
+# '~' to rcl, and a message should show what the file says).
+class _RclYamlLoader(yaml.SafeLoader):
+    pass
+
+
+_RclYamlLoader.yaml_implicit_resolvers = {
+    first: [(tag, regexp) for tag, regexp in resolvers if tag != 'tag:yaml.org,2002:null']
+    for first, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()}
+
+
+def _ros_arguments(args: Sequence[str]) -> Iterable[tuple[str, str]]:
+    """(flag, value) of every --params-file and -p/--param inside --ros-args ... [--]."""
+    inside = False
+    it = iter(args)
+    for token in it:
+        if token == '--ros-args':
+            inside = True
+        elif token == '--' and inside:
+            inside = False
+        elif inside and token in ('--params-file', '-p', '--param'):
+            value = next(it, None)
+            if value is not None:
+                yield token, value
+
+
+def _flatten(values: Any, prefix: str = '') -> dict[str, Any]:
+    if not isinstance(values, dict):
+        return {}
+    out = {}
+    for key, value in values.items():
+        if isinstance(value, dict):
+            out.update(_flatten(value, f'{prefix}{key}.'))
+        else:
+            out[f'{prefix}{key}'] = value
+    return out
+
+
+def _params_file_blocks(data: Any, path: str = '') -> Iterable[tuple[str, dict]]:
+    """(node key with a leading '/', ros__parameters) of a params file, nested namespaces
+    joined ('/ns: {node: ...}' is '/ns/node')."""
+    if not isinstance(data, dict):
+        return
+    for key, value in data.items():
+        if not isinstance(value, dict):
+            continue
+        name = f'{path}/{str(key).strip("/")}'
+        if 'ros__parameters' in value:
+            yield name, value['ros__parameters']
+        else:
+            yield from _params_file_blocks(value, name)
+
+
+def given_parameters(args: Sequence[str], node: Node) -> dict[str, Any]:
+    """The parameter values the ROS arguments in `args` give `node`, by full name.
+
+    Sources: every --params-file (its `/**:` and `<node>:` blocks) and -p [node:]name:=value.
+    As rcl and rclpy combine them (checked against them in test_params.py): each source adds to
+    the entry of its node key ('/**' for -p without a node name), entries in the order they
+    first appear, and the entries for `/**` and the node's fully qualified name are applied in
+    that order, a later entry winning. rcl has parsed the same arguments already (non_ros_args,
+    rclpy.init) and its values are the ones declared; these are for what rclpy does not tell
+    publicly: which names were given, the value a type or range error names, and an integer
+    given for a float parameter.
+    """
+    entries: dict[str, dict[str, Any]] = {}
+    for flag, value in _ros_arguments(args):
+        if flag == '--params-file':
+            try:
+                with open(value, encoding='utf-8') as f:
+                    data = yaml.load(f, Loader=_RclYamlLoader)
+            except (OSError, yaml.YAMLError):
+                continue            # rcl refused it already (non_ros_args names it)
+            for key, block in _params_file_blocks(data):
+                entries.setdefault(key, {}).update(_flatten(block))
+            continue
+        rule, sep, text = value.partition(':=')
+        if not sep:
+            continue
+        target, _colon, name = rule.rpartition(':')
+        try:
+            parsed = yaml.load(text, Loader=_RclYamlLoader)
+        except yaml.YAMLError:
+            parsed = text
+        entries.setdefault('/' + target.strip('/') if target else '/**', {})[name] = parsed
+    given: dict[str, Any] = {}
+    for key, values in entries.items():
+        if key in ('/**', node.get_fully_qualified_name()):
+            given.update(values)
+    return given
 
 
 @dataclasses.dataclass(frozen=True)
@@ -136,7 +238,6 @@ DRIVE_PARAMS = (
     P('allow_raw_write', False, 'allow write_register (raw writes can change anything)'),
 )
 
-RUNTIME_DRIVE_PARAMS = frozenset(p.name for p in DRIVE_PARAMS if not p.read_only)
 # Parameters rclpy declares on every node itself.
 IMPLICIT_PARAMS = ('use_sim_time', 'start_type_description_service')
 
@@ -178,27 +279,32 @@ _TYPE_NAMES = {ParameterType.PARAMETER_BOOL: 'a boolean',
                ParameterType.PARAMETER_STRING_ARRAY: 'a list of strings'}
 
 
-def declare(node: Node, full_name: str, p: P | ParamSpec, default: Any = None) -> Any:
-    """Declare one parameter; return its value or raise ParameterError (one line)."""
+def declare(node: Node, full_name: str, p: P | ParamSpec, default: Any = None,
+            given: Mapping[str, Any] | None = None) -> Any:
+    """Declare one parameter; return its value or raise ParameterError (one line).
+
+    `given`: what the ROS arguments give the node (given_parameters)."""
+    given = {} if given is None else given
     default = p.default if default is None else default
     if isinstance(p.default, float) and isinstance(default, int):
         default = float(default)    # a vendor default written as 12800 for a float parameter
-    override = node._parameter_overrides.get(full_name)  # rclpy has no public accessor
-    if override is not None and isinstance(default, float) \
-            and override.type_ == override.Type.INTEGER:
-        # YAML '10' for a float parameter: accept it as 10.0 instead of failing on the type.
-        node._parameter_overrides[full_name] = type(override)(
-            full_name, override.Type.DOUBLE, float(override.value))
+    got = given.get(full_name, default)
     try:
-        value = node.declare_parameter(full_name, default, _descriptor(p)).value
+        try:
+            value = node.declare_parameter(full_name, default, _descriptor(p)).value
+        except InvalidParameterTypeException:
+            if not (isinstance(default, float) and type(got) is int):
+                raise
+            # YAML '10' for a float parameter: accept it as 10.0 instead of failing on the type.
+            got = float(got)
+            value = node.declare_parameter(full_name, got, _descriptor(p),
+                                           ignore_override=True).value
     except InvalidParameterValueException:
-        got = node._parameter_overrides[full_name].value
         raise ParameterError(
             f'parameter {full_name}: {got!r} is out of range (allowed: {_allowed(p)})') from None
     except InvalidParameterTypeException:
-        got = node._parameter_overrides[full_name]
         want = _TYPE_NAMES.get(Parameter.Type.from_parameter_value(default).value, 'valid')
-        raise ParameterError(f'parameter {full_name}: {got.value!r} is not {want} '
+        raise ParameterError(f'parameter {full_name}: {got!r} is not {want} '
                              f'(allowed: {_allowed(p)})') from None
     except ParameterUninitializedException:
         raise ParameterError(f'parameter {full_name} must be set') from None
@@ -224,84 +330,127 @@ class DriveConfig:
     params: dict[str, Any]   # every parameter of this drive, common and vendor, without prefix
 
 
-@dataclasses.dataclass
-class BusConfig:
-    params: dict[str, Any]   # common and vendor bus parameters
-    drives: list[DriveConfig]
+Rules = Callable[[Mapping[str, Any]], list[str]]
 
 
-def check_drive(prefix: str, values: dict[str, Any]) -> None:
-    """Cross-field rules that ranges cannot express; raise ParameterError."""
+def drive_errors(prefix: str, values: Mapping[str, Any]) -> list[str]:
+    """Cross-field rules of one drive that ranges cannot express."""
+    errors = []
     if values['min_position'] >= values['max_position']:
-        raise ParameterError(
+        errors.append(
             f"parameter {prefix}min_position: {values['min_position']} must be below "
             f"{prefix}max_position ({values['max_position']})")
     for name in ('profile_velocity', 'homing.speed_search', 'homing.speed_zero'):
         if values[name] > values['max_velocity']:
-            raise ParameterError(
+            errors.append(
                 f'parameter {prefix}{name}: {values[name]} exceeds {prefix}max_velocity '
                 f"({values['max_velocity']})")
     for name in ('profile_acceleration', 'profile_deceleration', 'homing.acceleration'):
         if values[name] > values['max_acceleration']:
-            raise ParameterError(
+            errors.append(
                 f'parameter {prefix}{name}: {values[name]} exceeds {prefix}max_acceleration '
                 f"({values['max_acceleration']})")
+    try:
+        UnitConversion(values['steps_per_rev'], values['gear_ratio'], values['unit'],
+                       values['lead_m'])
+    except ValueError as e:
+        errors.append(f'parameter {prefix}{e}')
+    return errors
 
 
-def declare_all(node: Node, vendor: Vendor) -> BusConfig:
-    """Declare the common and the vendor parameters; raise ParameterError on the first bad one."""
+def drives_list_errors(names: Sequence[str]) -> list[str]:
+    """The drives list: at least one name, each once, each a valid name."""
+    if not names:
+        return ['parameter drives: no drive named (allowed: a list of one or more drive names, '
+                'each with its drives.<name>.* parameters)']
+    if len(set(names)) != len(names):
+        return [f'parameter drives: {list(names)} names a drive twice']
+    return [f'parameter drives: {n!r} is not a valid name (allowed: letters, digits and _, '
+            'starting with a letter)'
+            for n in names if not n.replace('_', '').isalnum() or not n[0].isalpha()]
+
+
+def validate(params: Mapping[str, Any], vendor_validate: Rules | None = None) -> list[str]:
+    """Every rule between parameters, on all parameters of a node by name (param_rules): the
+    common ones (drives list, per drive limits against profiles, units, unique joint names),
+    then the vendor's `validate`. Pure: builds no bus or drive, changes nothing. One line per
+    broken rule; [] when the parameters are good."""
+    names = param_rules.drive_names(params)
+    errors = drives_list_errors(names)
+    if errors:
+        return errors
+    joints = []
+    for name in names:
+        values = param_rules.drive_params(params, name)
+        errors += drive_errors(f'drives.{name}.', values)
+        joints.append(values['joint_name'] or name)
+    if len(set(joints)) != len(joints):
+        errors.append(f'parameter drives.*.joint_name: {joints} names a joint twice')
+    if vendor_validate is not None:
+        errors += vendor_validate(params)
+    return errors
+
+
+@dataclasses.dataclass
+class BusConfig:
+    params: dict[str, Any]   # common and vendor bus parameters
+    drives: list[DriveConfig]
+    # the rules the parameters met at start-up; run-time changes must meet them too
+    validate: Rules = validate
+
+
+def current_values(node: Node) -> dict[str, Any]:
+    """Every declared parameter of `node` by name (rclpy's public get_parameters_by_prefix)."""
+    return {name: p.value for name, p in node.get_parameters_by_prefix('').items()}
+
+
+def declare_all(node: Node, vendor: Vendor, args: Sequence[str] = (),
+                vendor_validate: Rules | None = None) -> BusConfig:
+    """Declare the common and the vendor parameters from the ROS arguments `args` (the argv
+    given to rclpy.init), then check them with `validate(params, vendor_validate)`; raise
+    ParameterError on the first bad one."""
+    given = given_parameters(args, node)
     bus_specs = [s for s in vendor.params if s.scope == 'bus']
     drive_specs = [s for s in vendor.params if s.scope == 'drive']
-    bus = {p.name: declare(node, p.name, p) for p in (*BUS_PARAMS, *bus_specs)}
-    drive_names = declare(node, 'drives', P('drives', [''], 'names of the drives on this bus'))
+    bus = {p.name: declare(node, p.name, p, given=given) for p in (*BUS_PARAMS, *bus_specs)}
+    drive_names = declare(node, 'drives', P('drives', [''], 'names of the drives on this bus'),
+                          given=given)
     drive_names = [n for n in drive_names if n]
-    if not drive_names and not set(node._parameter_overrides) - set(IMPLICIT_PARAMS):
+    if not drive_names and not set(given) - set(IMPLICIT_PARAMS):
         # The params file has no block for this node: its top-level key names another node.
         raise ParameterError(
             f'parameter drives: not set, and no parameter is given for node '
             f'{node.get_fully_qualified_name()} (a params file configures the node named by its '
             f'top-level key: {node.get_name()}: or /**:)')
-    if not drive_names:
-        raise ParameterError('parameter drives: no drive named (allowed: a list of one or more '
-                             'drive names, each with its drives.<name>.* parameters)')
-    if len(set(drive_names)) != len(drive_names):
-        raise ParameterError(f'parameter drives: {drive_names} names a drive twice')
-    for n in drive_names:
-        if not n.replace('_', '').isalnum() or not n[0].isalpha():
-            raise ParameterError(f'parameter drives: {n!r} is not a valid name (allowed: letters, '
-                                 'digits and _, starting with a letter)')
-    drives = []
+    for problem in drives_list_errors(drive_names):
+        raise ParameterError(problem)
+    values = {}
     for name in drive_names:
         prefix = f'drives.{name}.'
-        values = {}
-        for p in (*DRIVE_PARAMS, *drive_specs):
-            default = vendor.drive_defaults.get(p.name)
-            values[p.name] = declare(node, prefix + p.name, p, default)
-        check_drive(prefix, values)
-        try:
-            conv = UnitConversion(values['steps_per_rev'], values['gear_ratio'], values['unit'],
-                                  values['lead_m'])
-        except ValueError as e:
-            raise ParameterError(f'parameter {prefix}{e}') from None
-        drives.append(DriveConfig(name, values['joint_name'] or name, conv, values))
-    joints = [d.joint_name for d in drives]
-    if len(set(joints)) != len(joints):
-        raise ParameterError(f'parameter drives.*.joint_name: {joints} names a joint twice')
-    _refuse_unknown(node, drive_names)
-    return BusConfig(bus, drives)
+        values[name] = {
+            p.name: declare(node, prefix + p.name, p, vendor.drive_defaults.get(p.name), given)
+            for p in (*DRIVE_PARAMS, *drive_specs)}
+    _refuse_unknown(node, given, drive_names)
+    rules = functools.partial(validate, vendor_validate=vendor_validate)
+    for problem in rules(current_values(node)):
+        raise ParameterError(problem)
+    drives = [DriveConfig(name, v['joint_name'] or name,
+                          UnitConversion(v['steps_per_rev'], v['gear_ratio'], v['unit'],
+                                         v['lead_m']), v)
+              for name, v in values.items()]
+    return BusConfig(bus, drives, rules)
 
 
-def _refuse_unknown(node: Node, drive_names: Iterable[str]) -> None:
+def _refuse_unknown(node: Node, given: Mapping[str, Any], drive_names: Iterable[str]) -> None:
     """A misspelt parameter in the params file would be ignored silently by rclpy: refuse it.
 
     Parameters of a drive that is not in `drives` are only warned about: taking a drive out of the
     list is the normal way to run without it.
     """
-    declared = set(node._parameters)
     names = list(drive_names)
     unlisted = set()
-    for name in node._parameter_overrides:
-        if name in declared or name in IMPLICIT_PARAMS:
+    for name in given:
+        if node.has_parameter(name) or name in IMPLICIT_PARAMS:
             continue
         parts = name.split('.')
         if len(parts) > 2 and parts[0] == 'drives' and parts[1] not in names:

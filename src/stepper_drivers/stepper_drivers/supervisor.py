@@ -298,6 +298,8 @@ class BusSupervisor:
         return self._next_wake(now) - now
 
     def _by_age(self) -> list[Slot]:
+        if not any(s.queue for s in self.slots.values()):   # the usual case: no lock taken
+            return []
         with self._cv:
             ready = [s for s in self.slots.values() if s.queue and s.active is None]
         return sorted(ready, key=lambda s: s.queue[0].enqueued_t)[:1]
@@ -489,7 +491,7 @@ class BusSupervisor:
         slot.polls += 1
         self._resolve_waiters(slot, True)
         self._cycle_polled.add(slot.name)
-        if self._cycle_polled >= {s.name for s in self.slots.values() if s.connected}:
+        if all(s.name in self._cycle_polled for s in self.slots.values() if s.connected):
             self._cycle()
 
     def _cycle(self) -> None:
@@ -506,14 +508,14 @@ class BusSupervisor:
             callback(ok)
 
     def _expire_waiters(self, now: float) -> None:
-        if any(t <= now for t, _ in self._timers):
+        if self._timers and any(t <= now for t, _ in self._timers):
             with self._cv:
                 due = [c for t, c in self._timers if t <= now]
                 self._timers = [(t, c) for t, c in self._timers if t > now]
             for callback in due:
                 callback()
         for slot in self.slots.values():
-            if not any(t <= now for t, _ in slot.poll_waiters):
+            if not slot.poll_waiters or not any(t <= now for t, _ in slot.poll_waiters):
                 continue
             with self._cv:
                 expired = [w for w in slot.poll_waiters if w[0] <= now]

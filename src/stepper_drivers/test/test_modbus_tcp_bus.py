@@ -88,10 +88,11 @@ def bus(server):
 
 def test_write_and_read_back(bus, server):
     bus.write_registers(1, 1042, [0xA980, 0x0003])            # FC16
-    bus.write_registers(1, 1040, [0x000F], single=True)       # FC06
-    assert bus.read_registers(1, 1040, 4) == [0x000F, 0, 0xA980, 0x0003]
+    bus.write_register(1, 1040, 0x000F)                        # FC06
+    assert bus.read_holding_registers(1, 1040, 4) == [0x000F, 0, 0xA980, 0x0003]
     assert [w[0] for w in server.writes] == [16, 6]
-    assert bus.counters() == {'transactions': 3, 'errors': 0, 'exceptions': 0, 'timeouts': 0}
+    assert bus.counters() == {'transactions': 3, 'errors': 0, 'exceptions': 0, 'timeouts': 0,
+                              'stale_replies': 0}
     assert bus.is_open and bus.description == f'modbus tcp 127.0.0.1:{server.port}'
 
 
@@ -100,18 +101,23 @@ def test_exception_reply_names_fc_address_and_code(bus):
         bus.write_registers(1, 1000, [1, 2, 3])
     assert not isinstance(err.value, LinkError)
     assert isinstance(err.value, ModbusExceptionError) and err.value.code == 0x02
-    assert 'FC16 write at 1000: exception 0x02 ILLEGAL DATA ADDRESS' in str(err.value)
-    with pytest.raises(DriveError, match='FC06 write at 1001: exception 0x02 ILLEGAL DATA'):
-        bus.write_registers(1, 1001, [5], single=True)
-    with pytest.raises(DriveError, match=r'FC03 read of 5 at 1098: exception 0x02'):
-        bus.read_registers(1, 1098, 5)                         # past the end of the map
+    assert 'unit 1: FC16 write 3 at 1000: exception 0x02 ILLEGAL DATA ADDRESS' in str(err.value)
+    assert err.value.function_code == 0x10
+    with pytest.raises(ModbusExceptionError,
+                       match='FC06 write 0x0005 at 1001: exception 0x02 ILLEGAL DATA'):
+        bus.write_register(1, 1001, 5)
+    with pytest.raises(ModbusExceptionError, match=r'FC03 read 5 at 1098: exception 0x02'):
+        bus.read_holding_registers(1, 1098, 5)                         # past the end of the map
     assert bus.counters()['exceptions'] == 3
-    assert bus.read_registers(1, 1002, 1) == [0]               # the link is still fine
+    assert bus.read_holding_registers(1, 1002, 1) == [0]               # the link is still fine
 
 
 def test_counts_checked_before_sending(bus):
-    with pytest.raises(DriveError, match='count 126 outside 1..125'):
-        bus.read_registers(1, 1000, 126)
+    with pytest.raises(DriveError, match='read of 126 registers at 1000: count 126 outside '
+                                         r'1\.\.125'):
+        bus.read_holding_registers(1, 1000, 126)
+    with pytest.raises(DriveError, match='count 124 outside 1..123'):
+        bus.write_registers(1, 1000, [0] * 124)
     assert bus.transactions == 0
 
 
@@ -122,7 +128,7 @@ def test_threads_share_one_bus(bus):
         try:
             for i in range(50):
                 bus.write_registers(1, 1010 + k, [i])
-                assert bus.read_registers(1, 1010 + k, 1) == [i]
+                assert bus.read_holding_registers(1, 1010 + k, 1) == [i]
         except Exception as exc:    # noqa: BLE001 - collected and asserted below
             errors.append(exc)
 
@@ -142,7 +148,7 @@ def test_connection_refused_names_host_port_and_timeout():
         b.open()
     assert not b.is_open
     with pytest.raises(LinkError, match='not connected'):
-        b.read_registers(1, 1001, 1)
+        b.read_holding_registers(1, 1001, 1)
 
 
 def test_silent_server_times_out_then_reopens():
@@ -152,9 +158,9 @@ def test_silent_server_times_out_then_reopens():
         port = silent.getsockname()[1]
         b = ModbusTcpBus('127.0.0.1', port, timeout_s=0.1)
         b.open()
-        with pytest.raises(LinkError, match=rf'127.0.0.1:{port} unit 1: FC03 read of 1 at 1001: '
+        with pytest.raises(LinkError, match=rf'127.0.0.1:{port} unit 1: FC03 read 1 at 1001: '
                                             r'no answer within 0.1 s'):
-            b.read_registers(1, 1001, 1)
+            b.read_holding_registers(1, 1001, 1)
         assert b.counters()['timeouts'] == 1 and b.errors == 1
         b.close()
         assert not b.is_open
@@ -178,10 +184,87 @@ def test_a_connection_reset_by_the_peer_is_a_link_error_in_one_line():
             peer.close()                  # linger 0: the close sends RST
         server = threading.Thread(target=reset_after_the_request)
         server.start()
-        with pytest.raises(LinkError, match=rf'127.0.0.1:{port} unit 1: FC03 read of 1 at '
+        with pytest.raises(LinkError, match=rf'127.0.0.1:{port} unit 1: FC03 read 1 at '
                                             r'1001: ') as err:
-            b.read_registers(1, 1001, 1)
+            b.read_holding_registers(1, 1001, 1)
         server.join()
         assert '\n' not in str(err.value)
         assert b.errors == 1
         b.close()
+
+
+class ScriptedServer:
+    """A Modbus TCP server played by hand on a plain socket: `answer(request_adu)` returns the
+    bytes to send back (or None for silence), so late and foreign replies can be staged."""
+
+    def __init__(self, answer):
+        self.listener = socket.create_server(('127.0.0.1', 0))
+        self.port = self.listener.getsockname()[1]
+        self.answer = answer
+        self.thread = threading.Thread(target=self._serve, daemon=True)
+        self.thread.start()
+
+    def _serve(self):
+        peer, _ = self.listener.accept()
+        with peer:
+            while True:
+                adu = peer.recv(260)
+                if not adu:
+                    return
+                reply = self.answer(adu)
+                if reply:
+                    peer.sendall(reply)
+
+    def close(self):
+        self.listener.close()
+
+
+def _fc03_reply(request_adu, value):
+    return (request_adu[0:2] + b'\x00\x00\x00\x05' + request_adu[6:7] + b'\x03\x02'
+            + value.to_bytes(2, 'big'))
+
+
+def test_a_late_reply_to_a_timed_out_request_is_not_taken_for_the_next_one():
+    """The first request gets no answer in time; its reply arrives together with the reply to
+    the second: the bus matches transaction ids and returns the second's value (111, the
+    first request's register read back as the second's, would be a wrong drive value)."""
+    first = []
+
+    def answer(adu):
+        if not first:
+            first.append(adu)
+            return None                                       # silent: the bus times out
+        return _fc03_reply(first[0], 111) + _fc03_reply(adu, 222)
+
+    srv = ScriptedServer(answer)
+    b = ModbusTcpBus('127.0.0.1', srv.port, timeout_s=0.2)
+    b.open()
+    try:
+        with pytest.raises(LinkError, match='no answer within 0.2 s'):
+            b.read_holding_registers(1, 1001, 1)
+        assert b.read_holding_registers(1, 1001, 1) == [222]
+        assert b.counters()['stale_replies'] == 1
+    finally:
+        b.close()
+        srv.close()
+
+
+def test_a_reply_that_does_not_fit_the_request_is_a_link_error():
+    """A reply from another unit id, and one whose byte count does not match the request:
+    LinkError naming what was wrong (the node reconnects), never registers taken from it."""
+    replies = iter([
+        lambda adu: adu[0:4] + b'\x00\x05\x07' + b'\x03\x02\x00\x01',      # unit 7 answers
+        lambda adu: adu[0:4] + b'\x00\x05' + adu[6:7] + b'\x03\x02\x00\x01',  # 1 of 2 words
+    ])
+    srv = ScriptedServer(lambda adu: next(replies)(adu))
+    b = ModbusTcpBus('127.0.0.1', srv.port, timeout_s=0.5)
+    b.open()
+    try:
+        with pytest.raises(LinkError, match='unit 1: FC03 read 1 at 1001: reply from unit 7'):
+            b.read_holding_registers(1, 1001, 1)
+        with pytest.raises(LinkError, match='FC03 read 2 at 1001: 2 data bytes for 2 registers'):
+            b.read_holding_registers(1, 1001, 2)
+        assert b.errors == 2 and b.exceptions == 0
+    finally:
+        b.close()
+        srv.close()

@@ -36,11 +36,12 @@ n:
 def declare_from(tmp_path: pathlib.Path, text: str):
     f = tmp_path / 'p.yaml'
     f.write_text(text)
+    args = ['x', '--ros-args', '--params-file', str(f)]
     context = rclpy.Context()
-    rclpy.init(args=['x', '--ros-args', '--params-file', str(f)], context=context)
+    rclpy.init(args=args, context=context)
     node = rclpy.create_node('n', context=context)
     try:
-        return declare_all(node, VENDOR), node
+        return declare_all(node, VENDOR, args), node
     finally:
         rclpy.try_shutdown(context=context)
 
@@ -137,3 +138,73 @@ def test_a_ros_argument_rcl_refuses_is_named(args, message):
     with pytest.raises(ParameterError) as e:
         non_ros_args(['exe', '--ros-args', *args])
     assert message in str(e.value) and ' at /' not in str(e.value), str(e.value)
+
+
+def declare_with(tmp_path: pathlib.Path, text: str, *ros_args: str):
+    f = tmp_path / 'p.yaml'
+    f.write_text(text)
+    args = ['x', '--ros-args', '--params-file', str(f), *ros_args]
+    context = rclpy.Context()
+    rclpy.init(args=args, context=context)
+    node = rclpy.create_node('n', context=context)
+    try:
+        return declare_all(node, VENDOR, args), node
+    finally:
+        rclpy.try_shutdown(context=context)
+
+
+WILD = """
+/**:
+  ros__parameters:
+    port: 1600
+    word_order: big
+"""
+
+
+def test_an_integer_for_a_float_parameter_and_the_precedence_of_the_arguments(tmp_path):
+    cfg, node = declare_with(tmp_path, WILD + GOOD, '-p', 'drives.axis2.max_velocity:=20',
+                             '-p', 'n:timeout_s:=0.25')
+    assert cfg.params['port'] == 1502 and cfg.params['word_order'] == 'big'
+    assert cfg.params['timeout_s'] == 0.25
+    assert cfg.drives[1].params['max_velocity'] == 20.0       # -p with an integer
+    assert cfg.drives[0].params['max_velocity'] == 10.0       # the file, with an integer
+
+
+# (file blocks, ROS arguments after the params file): rcl's own combination decides
+ORDERS = [
+    (WILD + GOOD, ('-p', 'port:=7')),                # /** first: the node's block wins
+    (GOOD + WILD, ()),                               # the node's block first: /** wins
+    (GOOD, ('-p', 'port:=7', '-p', 'n:port:=8')),
+    (GOOD, ('-p', 'n:port:=8', '-p', 'port:=7')),
+    (GOOD.replace('n:', '/n:', 1), ('-p', 'other:port:=9', '-p', 'drives.axis1.unit_id:=5')),
+]
+
+
+@pytest.mark.parametrize('text, ros_args', ORDERS)
+def test_given_parameters_agrees_with_rcl(tmp_path, text, ros_args):
+    """given_parameters reads the arguments as rcl and rclpy combine them. The reference is
+    rclpy's private Node._parameter_overrides, read here only: the product code does not."""
+    from stepper_drivers.params import given_parameters
+    f = tmp_path / 'p.yaml'
+    f.write_text(text)
+    args = ['x', '--ros-args', '--params-file', str(f), *ros_args]
+    context = rclpy.Context()
+    rclpy.init(args=args, context=context)
+    try:
+        node = rclpy.create_node('n', context=context)
+        rcl = {name: p.value for name, p in node._parameter_overrides.items()}
+        assert given_parameters(args, node) == rcl
+    finally:
+        rclpy.try_shutdown(context=context)
+
+
+@pytest.mark.parametrize('text, ros_args, message', [
+    (GOOD, ('-p', 'drive_typo:=1'), 'parameter drive_typo: unknown parameter'),
+    (WILD.replace('word_order', 'word_ordr') + GOOD, (), 'parameter word_ordr: unknown parameter'),
+    (GOOD, ('-p', 'drives.axis1.max_velocity:=fast'),
+     r"parameter drives.axis1.max_velocity: 'fast' is not a floating point number"),
+    (GOOD, ('-p', 'port:=0'), r'parameter port: 0 is out of range'),
+])
+def test_a_bad_ros_argument_is_named_with_its_value(tmp_path, text, ros_args, message):
+    with pytest.raises(ParameterError, match=message):
+        declare_with(tmp_path, text, *ros_args)

@@ -244,7 +244,7 @@ def test_raw_registers_typed_in_both_word_orders(tmp_path, order):
         assert drive.read_register('1042', 'u32') == 0xFFFF_FC18
         assert s.drives['axis1'].register('TARGET_POSITION') == -1000   # decoded by the sim
         expect = [0xFC18, 0xFFFF] if order == 'little' else [0xFFFF, 0xFC18]
-        assert bus.read_registers(1, 1042, 2) == expect    # §11 word order on the wire
+        assert bus.read_holding_registers(1, 1042, 2) == expect  # §11 word order on the wire
         assert drive.read_register('1158', 'u32') == 100_001
         drive.write_register('1040', 'u16', 0x0006)        # raw controlword: SOD -> RTSO
         wait_for(lambda: drive.read_state().state == State.READY_TO_SWITCH_ON, 1.0)

@@ -10,9 +10,11 @@ error register 0x1001, history 0x1003 (2 entries) and 0x603F, the manual's fault
 ([SEGNALAZIONE DI ERRORE]), save/load through Rloadsav 0x20C2, and the DSP-402/AEC object values
 read over SDO/PDO.
 
-Operating modes: `_run_mode` dispatches on 0x6060 (1 PP, 6 homing, -1 JOG). Mode 7 (interpolated
-position) is accepted and shown but not simulated: it goes there, a `_interpolate` beside
-`_new_setpoint`/`_jog`, fed from `on_sync` (vector_step_pdo) for the SYNC-timed buffer.
+Operating modes: `_run_mode` dispatches on 0x6060 (1 PP, 6 homing, -1 JOG, 7 interpolated
+position). Mode 7 [INTERPOLATION SUBMODE SELECT] .. [INTERPOLATION DATA CONFIGURATION]: the
+two-position buffer 0x60C1 (filled by SDO or RxPDO), the start once IP is enabled and both
+elements are written, one linear segment per SYNC (`ip_on_sync`, called by vector_step_pdo's
+`on_sync`) over the period of 0x60C2, and the EMCYs FF03 (underflow), FF04/FF05 (SYNC early/late).
 
 Over 600 lines: one drive application whose parts (modes, alarms, storage) share the object
 dictionary and axis; the protocol layers are already apart (vector_step_nmt/_sdo/_pdo).
@@ -20,6 +22,7 @@ dictionary and axis; the protocol layers are already apart (vector_step_nmt/_sdo
 
 from __future__ import annotations
 
+import collections
 import functools
 import json
 import logging
@@ -41,6 +44,11 @@ logger = logging.getLogger(__name__)
 
 SAVE_TIME_S = 0.15                   # Rloadsav 0x81 busy time (EEPROM write)
 DEFAULT_MAX_TRAVEL_STEPS = 50 * 3200
+# Interpolated position: a SYNC whose distance from the previous one is off the period of 0x60C2
+# by more than this fraction of it is "too early" (FF04) or "too late" (FF05). The manual gives
+# no tolerance: the simulator's choice, wide enough for SYNCs from a python-can thread on a
+# loaded machine (the distance is measured on the frames' receive stamps).
+IP_SYNC_TOLERANCE = 0.5
 
 # The CiA 402 state machine, statusword state bits and PP handshake: cia402_device (VECTOR_STEP).
 NRTSO, SOD, RTSO, SO, OE = cia.NRTSO, cia.SOD, cia.RTSO, cia.SO, cia.OE
@@ -120,6 +128,8 @@ class AecDrive:
         self.jog_running = False
         self.jog_inhibit = False
         self.jog_velocity_hz = 0.0
+        self._ip_reset()
+        self.ip_access = True             # 0x60C4:06: buffer access enabled (simulator's choice)
         self.rcmdrd = 0
         self.loadsav_busy: tuple[int, float] | None = None
         self.loadsav_last = 0
@@ -161,6 +171,8 @@ class AecDrive:
             return vm.rps100_from_hz(self.axis.velocity_hz, self.steps_per_rev)
         if index == vm.ERROR_REGISTER:
             return self.error_register()
+        if index == vm.INTERPOLATION_DATA_CONFIGURATION and subindex == 2:
+            return len(self.ip_buffer)       # actual_size
         if index == vm.PRE_DEFINED_ERROR_FIELD:
             if subindex == 0:
                 return len(self.history)
@@ -243,6 +255,7 @@ class AecDrive:
             return
         self.homing_abort(interrupted=False)
         self.jog_running = False
+        self._ip_reset()
         react = self._stored(vm.RALARMREACT, vm.AEC_SUB)
         immediate = react in (-1, 0) or (react == -4 and any(
             self.alarms & (1 << b) for b in vm.RALARM_IMMEDIATE_BITS))
@@ -291,6 +304,13 @@ class AecDrive:
             if self.axis.velocity_hz == 0.0:
                 sw |= SW_BIT12                # "1 = Motore fermo"
             if not self.axis.motion.in_ramp:
+                sw |= SW_TARGET_REACHED
+        elif self.mode == vm.MODE_INTERPOLATED:
+            # The manual's [STATUSWORD] has no IP column: CiA 402's bit 12 "ip mode active" and
+            # bit 10 target reached (at rest on the last point)
+            if self.ip_enabled:
+                sw |= vm.SW_BIT_IP_ACTIVE
+            if at_rest:
                 sw |= SW_TARGET_REACHED
         else:
             if at_rest:
@@ -380,12 +400,14 @@ class AecDrive:
             self.jog_running = False
             self.jog_inhibit = False
             self.set_point.reset()
+            self._ip_reset()
             if number == 4:
                 self.axis.motion.stop_immediately()
             return
         self.homing_abort(interrupted=True)
         self.jog_running = False
         self.set_point.queued = None
+        self._ip_reset()
 
     def cia_left(self, number: int, source: str, target: str) -> None:
         pass
@@ -409,12 +431,13 @@ class AecDrive:
         self.jog_running = False
         self.jog_inhibit = True
         self.set_point.reset()
+        self._ip_reset()
         self.homing_result = ''
         self.mode = mode
 
     def _run_mode(self, cw: int, prev: int) -> None:
         """The operating mode's part of the controlword, in OPERATION ENABLED (one branch per
-        0x6060 value; mode 7, interpolated position, has none yet: nothing moves in it)."""
+        0x6060 value)."""
         rising = cw & cia.CW_NEW_SET_POINT and not prev & cia.CW_NEW_SET_POINT
         falling = prev & cia.CW_NEW_SET_POINT and not cw & cia.CW_NEW_SET_POINT
         if self.mode == vm.MODE_PROFILE_POSITION:
@@ -429,6 +452,8 @@ class AecDrive:
                 self._start_homing()
             elif falling and self.homing is not None:
                 self.homing_abort(interrupted=True)
+        elif self.mode == vm.MODE_INTERPOLATED:
+            self._interpolation_control(rising, bool(cw & vm.CW_BIT_IP_ENABLE))
 
     def _profile(self) -> tuple[float, float, float]:
         return (self._hz(self._stored(vm.PROFILE_VELOCITY)),
@@ -487,6 +512,102 @@ class AecDrive:
         option = self._stored(vm.STOP_OPTION_CODE)          # [STOP OPTION CODE]
         index = vm.QUICK_STOP_DECELERATION if option == 2 else vm.PROFILE_DECELERATION
         return self._hz_s(self._stored(index))
+
+    # --- Interpolated position (7) -------------------------------------------------------------
+    def _ip_reset(self) -> None:
+        """End of an interpolation (IP disabled, mode or state left, a stop, a fault): the
+        buffer is emptied, so a new start needs both elements written again."""
+        self.ip_buffer: collections.deque[int] = collections.deque()
+        self.ip_written: set[int] = set()  # sub-indexes of 0x60C1 written since
+        self.ip_enabled = False            # CW bit 4 rising edge seen in OE, mode 7
+        self.ip_started = False            # ... and both buffer elements written
+        self.ip_sync_stamp: float | None = None
+
+    def _ip_period_s(self) -> float:
+        """0x60C2: ip_time_units x 10^ip_time_index s (index 0xFD = -3, as an INTEGER8)."""
+        units = self._stored(vm.INTERPOLATION_TIME_PERIOD, 1)
+        index = self._stored(vm.INTERPOLATION_TIME_PERIOD, 2)
+        return units * 10.0 ** (index - 256 if index > 127 else index)
+
+    def _ip_write(self, sub: int, value: int) -> None:
+        """0x60C1:01/02 by SDO or RxPDO: one target into the two-position buffer, first in first
+        out (0x60C4:03 buffer_organisation 0). A full buffer refuses it (the manual is silent:
+        keeping the queued points is the simulator's choice); so does a cleared one (0x60C4:06)."""
+        if not self.ip_access:
+            raise SdoAbortedError(vm.ABORT_DEVICE_STATE)
+        if len(self.ip_buffer) >= vm.IP_BUFFER_SIZE:
+            logger.info('%s: interpolation buffer full: 0x60C1:%02X = %d refused', self.name, sub,
+                        value)
+            raise SdoAbortedError(vm.ABORT_DEVICE_STATE)
+        self.ip_buffer.append(value)
+        self.ip_written.add(sub)
+
+    def _interpolation_control(self, rising: bool, enable: bool) -> None:
+        """CW bit 4 in mode 7 (CiA 402 "enable ip mode"; the manual's [CONTROLWORD] has no IP
+        column). A rising edge enables; the motion starts "dopo aver abilitato il profilo
+        interpolazione e aver scritto entrambi gli elementi del buffer" [INTERPOLATION DATA
+        RECORD], at the next SYNC. Bit 4 low ends it: the axis stops on the stop ramp (0x605D,
+        as Rcmdwr STOP; the manual is silent) and the buffer is emptied."""
+        if not enable:
+            if self.ip_enabled:
+                logger.info('%s: interpolation disabled (controlword bit 4 = 0)', self.name)
+                self._ip_reset()
+                if self.axis.moving:
+                    self.axis.motion.stop(self._stop_deceleration())
+            return
+        if rising:
+            self.ip_enabled = True
+        if self.ip_enabled and not self.ip_started and self.ip_written >= {1, 2}:
+            self.ip_started = True
+            logger.info('%s: interpolation starts (buffer %s, period %g ms)', self.name,
+                        list(self.ip_buffer), self._ip_period_s() * 1e3)
+
+    def ip_on_sync(self, stamp_s: float) -> None:
+        """A SYNC in interpolated position mode (stamp_s: its receive time): check its distance
+        from the previous one against the period of 0x60C2 (FF04 too early, FF05 too late), take
+        the next buffer element (none: FF03) and run the linear segment to it."""
+        if not self.ip_started or self.state != OE or self.mode != vm.MODE_INTERPOLATED:
+            return
+        period_s = self._ip_period_s()
+        previous, self.ip_sync_stamp = self.ip_sync_stamp, stamp_s
+        if previous is not None:
+            interval_s = stamp_s - previous
+            if interval_s < period_s * (1.0 - IP_SYNC_TOLERANCE):
+                self._ip_alarm(vm.EMCY_IP_SYNC_EARLY, f'SYNC {interval_s * 1e3:.2f} ms after the '
+                               f'previous one (period {period_s * 1e3:g} ms)')
+                return
+            if interval_s > period_s * (1.0 + IP_SYNC_TOLERANCE):
+                self._ip_alarm(vm.EMCY_IP_SYNC_LATE, f'SYNC {interval_s * 1e3:.2f} ms after the '
+                               f'previous one (period {period_s * 1e3:g} ms)')
+                return
+        if not self.ip_buffer:
+            self._ip_alarm(vm.EMCY_IP_NO_DATA, 'buffer empty at a SYNC')
+            return
+        self._ip_segment(float(self.ip_buffer.popleft()), period_s)
+
+    def _ip_segment(self, point: float, period_s: float) -> None:
+        """Linear interpolation: from where the axis is to `point` at constant speed, arriving
+        one period later, resting there if the next SYNC is late. No ramps of 0x6083/0x6084: the
+        interpolator is the position demand (CiA 402), and the manual has no IP limit objects
+        (no 0x60C5/0x60C6); the axis' own maximum velocity still clamps it, as in every mode."""
+        distance = point - self.axis.position_steps
+        if distance == 0.0:
+            if self.axis.moving:
+                self.axis.motion.stop_immediately()     # on the point now
+            return
+        blocked = LIMIT_POS if distance > 0 else LIMIT_NEG
+        if self._input(blocked):
+            logger.info('%s: %s active, interpolation to %d not run', self.name, blocked, point)
+            return
+        self.axis.motion.move_to(point, abs(distance) / period_s, math.inf, math.inf)
+
+    def _ip_alarm(self, code: int, why: str) -> None:
+        """FF03/FF04/FF05 with the manual's data bytes. The manual names no reaction; the
+        simulator treats it as the drive alarm it calls it ("Allarme interpolazione"): the
+        fault reaction of Ralarmreact 0x471E, then FAULT."""
+        logger.info('%s: interpolation: %s', self.name, why)
+        self.emcy(code, vm.IP_EMCY_DATA)
+        self._enter_fault()
 
     def _start_homing(self) -> None:
         method = self._stored(vm.HOMING_METHOD)
@@ -564,6 +685,7 @@ class AecDrive:
             self.jog_running = False
             self.jog_inhibit = True
             self.set_point.queued = None
+            self._ip_reset()
 
     def _rcmdwr(self, value: int) -> None:
         if value == vm.RCMDWR_STOP:
@@ -571,6 +693,7 @@ class AecDrive:
             self.jog_running = False
             self.jog_inhibit = True
             self.set_point.queued = None
+            self._ip_reset()
             if self.axis.moving:
                 self.axis.motion.stop(self._stop_deceleration())
                 self.rcmdrd = vm.RCMDWR_STOP
@@ -580,6 +703,7 @@ class AecDrive:
             self.jog_running = False
             self.jog_inhibit = True
             self.set_point.queued = None
+            self._ip_reset()
             if self.axis.moving:
                 self.axis.motion.quick_stop(qdec)
                 self.rcmdrd = vm.RCMDWR_ABORT
@@ -663,6 +787,13 @@ class AecDrive:
         elif index in (vm.RALARM, vm.RALARM32):
             if value == 0:                   # "Per resettare gli allarmi scrivere 0"
                 self.alarms &= self.alarm_causes
+        elif index == vm.INTERPOLATION_DATA_RECORD:
+            self._ip_write(subindex, value)
+        elif index == vm.INTERPOLATION_DATA_CONFIGURATION and subindex == 6:
+            self.ip_access = value == vm.IP_BUFFER_ENABLE
+            if not self.ip_access:    # "Cancello il buffer (accesso al buffer disabilitato)"
+                self.ip_buffer.clear()
+                self.ip_written.clear()
         elif index == vm.RCMDWR:
             if value & (value - 1):          # "i bit devono essere alzati uno alla volta"
                 raise SdoAbortedError(vm.ABORT_VALUE_RANGE)

@@ -127,7 +127,9 @@ class PdoEngine:
         self.process()
         self.sim.wake()
 
-    def on_sync(self, now: float) -> None:
+    def on_sync(self, now: float, stamp_s: float | None = None) -> None:
+        """A SYNC received at `now`; `stamp_s` is the frame's receive stamp (interpolation
+        timing; any clock, differences only), `now` when there is none."""
         if self.link_cut or self.nmt_state == NMT_INITIALISING:
             return
         if self._sync_timeout_s():
@@ -139,6 +141,7 @@ class PdoEngine:
                 data, pdo.pending = pdo.pending, None
                 self._apply_rpdo(pdo, data)
         self.process()
+        self.ip_on_sync(stamp_s or now)
         for pdo in self.tx:
             if not pdo.valid:
                 continue

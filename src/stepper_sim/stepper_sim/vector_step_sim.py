@@ -19,15 +19,15 @@ or more `VectorStepNode`s. Each node is a `canopen.LocalNode` built from config/
   - SDO checks LocalNode leaves out: value ranges from the EDS, sub-index existence, the
     manual's abort codes (0x1005/0x1014 bits 29/30, 0x1016 duplicates, PDO mapping),
   - the application: the simulators' shared CiA 402 (cia402_device, not the driver's), profile
-    position (absolute/relative, change set
-    immediately, one buffered set-point), AEC JOG velocity mode (-1), homing with the manual's
+    position (absolute/relative, change set immediately, one buffered set-point), interpolated
+    position (7: two-position buffer 0x60C1, one linear segment per SYNC over the period of
+    0x60C2, EMCY FF03/FF04/FF05), AEC JOG velocity mode (-1), homing with the manual's
     methods on a SimAxis (BLS/FLS limit switches, TOP = encoder index), 0x607C as the position
     forced after homing, Rcmdwr STOP/ABORT, drive alarms with EMCY 0x5400 and the reaction of
     Ralarmreact, the error register 0x1001, history 0x1003 (2 entries) and 0x603F, fault reset
     as the manual's procedure ([SEGNALAZIONE DI ERRORE]), save/load through Rloadsav 0x20C2.
-The simulator does not interpolate (mode 7 is accepted and shown, nothing moves) and ignores
-S-curve profiles (0x6086): moves are trapezoidal. `main()` wraps it in the common ROS simulator
-node (sim_node.run_sim). Nothing here imports the driver's state logic.
+The simulator ignores S-curve profiles (0x6086): moves are trapezoidal. `main()` wraps it in
+the common ROS simulator node (sim_node.run_sim). Nothing here imports the driver's state logic.
 
 Modules, along CANopen's own seams: vector_step_nmt (NMT, error control, EMCY, SYNC watchdog),
 vector_step_sdo (SDO server checks), vector_step_pdo (PDO engine), vector_step_drive (the AEC
@@ -396,7 +396,7 @@ class VectorStepSim:
             now = time.monotonic()
             for node in self.nodes.values():
                 if node._stored(vm.COB_ID_SYNC) & 0x7FF == can_id:
-                    node.on_sync(now)
+                    node.on_sync(now, timestamp)
 
     def _run(self) -> None:
         while not self._stopping:

@@ -24,12 +24,12 @@ import sys
 import time
 from typing import Any, Callable, Iterable
 
+from .. import vendor_table
 from .errors import EXIT_FAILED, EXIT_NOT_FOUND, EXIT_OK, EXIT_USAGE, CliError
 
 logger = logging.getLogger(__name__)
 
-NODE_NAMES = {'rd4': 'rd4_node', 'xplus_mt': 'xplus_mt_node', 'xmind_k': 'xmind_k_node',
-              'vector_step': 'vector_step_node'}
+NODE_NAMES = {row.key: row.node for row in vendor_table.ROWS}
 
 
 # ------------------------------------------------------------------------------------ results
@@ -305,8 +305,8 @@ def scan_xplus_mt(args, deadline: Deadline) -> list[BusResult]:
                     if deadline.over():
                         break
                     try:
-                        order_value = bus.read_registers(unit, 1162, 1)[0]
-                        words = bus.read_registers(unit, 1152, 8)      # T15 identification
+                        order_value = bus.read_holding_registers(unit, 1162, 1)[0]
+                        words = bus.read_holding_registers(unit, 1152, 8)     # T15 identification
                     except DriveError as e:
                         if not isinstance(e, LinkError) and 'GATEWAY' not in str(e):
                             found.append(Found(unit, {'answer': str(e)},
@@ -526,12 +526,10 @@ def _vector_found(node, node_id: int, vm) -> Found:
     return Found(node_id, identity, params, notes)
 
 
+# scan_<key> for every vendor of the table with a scanner (scan_help).
 SCANNERS: dict[str, Callable[[Any, Deadline], list[BusResult]]] = {
-    'rd4': scan_rd4, 'xplus_mt': scan_xplus_mt, 'xmind_k': scan_xmind_k,
-    'vector_step': scan_vector_step,
-}
-ADDRESS_NAMES = {'rd4': 'node_id', 'xplus_mt': 'unit_id', 'xmind_k': 'address',
-                 'vector_step': 'node_id'}
+    row.key: globals()[f'scan_{row.key}'] for row in vendor_table.ROWS if row.scan_help}
+ADDRESS_NAMES = {row.key: row.address_param for row in vendor_table.ROWS}
 
 
 # --------------------------------------------------------------------------------- YAML out
@@ -628,18 +626,8 @@ def run(args) -> int:
         print(f'scan {args.vendor}: stopped after --max-time {args.max_time:g} s; not every '
               'address was probed', file=sys.stderr)
     if not results:
-        hints = {
-            'rd4': 'check the port, the A/B wiring, and --baudrate/--parity against the units\' '
-                   'dip-switches (factory 9600 8E1)',
-            'xplus_mt': 'check --host/--port (factory 192.168.1.10:502) and that the drive is '
-                        'powered',
-            'xmind_k': 'check the port and wiring; a drive running a program does not answer '
-                       '(§3): stop it (EE) first',
-            'vector_step': 'check the CAN interface, the bit rate (Rcanbaud) and the bus '
-                           'termination',
-        }
         raise CliError(EXIT_NOT_FOUND, f'scan {args.vendor}: no drive answered; '
-                       + hints[args.vendor])
+                       + vendor_table.BY_KEY[args.vendor].scan_hint)
     print_results(results)
     if args.write_yaml:
         command = ' '.join(sys.argv[1:]) if sys.argv else ''

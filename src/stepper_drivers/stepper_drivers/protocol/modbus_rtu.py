@@ -20,42 +20,26 @@ polling per transaction (research/transports.md §B1 item 5).
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import os
 import select
 import threading
 import time
-from typing import Any, Mapping, Sequence
+from typing import Any, Sequence
+
+from pymodbus.framer import FramerRTU
 
 from .. import drive
+from .modbus import (EXCEPTION_FLAG, FC_READ_HOLDING_REGISTERS,  # noqa: F401 - re-exported
+                     FC_READ_INPUT_REGISTERS, FC_WRITE_MULTIPLE_REGISTERS,
+                     FC_WRITE_SINGLE_REGISTER, FUNCTION_CODES, ILLEGAL_DATA_ADDRESS,
+                     ILLEGAL_DATA_VALUE, ILLEGAL_FUNCTION, MAX_READ_COUNT, MAX_WRITE_COUNT,
+                     SERVER_DEVICE_FAILURE, ModbusBus, ModbusExceptionError, ReplyMismatch,
+                     Request, parse_reply_pdu, read_request, write_multiple_request,
+                     write_single_request)
 
 logger = logging.getLogger(__name__)
 
-FC_READ_HOLDING_REGISTERS = 0x03      # §7.4.1 "03 Read Holding Registers"
-FC_READ_INPUT_REGISTERS = 0x04        # §7.4.1 "04 Read Input Register"
-FC_WRITE_SINGLE_REGISTER = 0x06       # §7.4.1 "06 Write Single Register"
-FC_WRITE_MULTIPLE_REGISTERS = 0x10    # §7.4.1 "16 Write Multiple Registers"
-FUNCTION_CODES = (FC_READ_HOLDING_REGISTERS, FC_READ_INPUT_REGISTERS, FC_WRITE_SINGLE_REGISTER,
-                  FC_WRITE_MULTIPLE_REGISTERS)
-EXCEPTION_FLAG = 0x80                 # §8.2: exception function code = FC + 0x80
-
-# Modbus Application Protocol V1.1b §7 (the RD4 manual defers to it, §7.2 and §8.2).
-ILLEGAL_FUNCTION = 0x01
-ILLEGAL_DATA_ADDRESS = 0x02
-ILLEGAL_DATA_VALUE = 0x03
-SERVER_DEVICE_FAILURE = 0x04
-EXCEPTION_NAMES: Mapping[int, str] = {
-    ILLEGAL_FUNCTION: 'ILLEGAL FUNCTION',
-    ILLEGAL_DATA_ADDRESS: 'ILLEGAL DATA ADDRESS',
-    ILLEGAL_DATA_VALUE: 'ILLEGAL DATA VALUE',
-    SERVER_DEVICE_FAILURE: 'SERVER DEVICE FAILURE',
-    0x05: 'ACKNOWLEDGE',
-    0x06: 'SERVER DEVICE BUSY',
-}
-
-MAX_READ_COUNT = 125           # §7.4.1 FC03/FC04: 1 to 125 (0x7D)
-MAX_WRITE_COUNT = 123          # §7.4.1 FC16: 0x0001 to 0x007B
 MAX_FRAME_BYTES = 256          # §7.3.1 maximum RTU frame
 BROADCAST_ADDRESS = 0          # §7.1 (the RD4 does not implement broadcast)
 MAX_SLAVE_ADDRESS = 247        # §4.4.1, §7.1
@@ -85,109 +69,30 @@ def t35_s(baud: int) -> float:
 
 
 # -------------------------------------------------------------------------------------- CRC
-def _crc_table() -> list[int]:
-    table = []
-    for byte in range(256):
-        crc = byte
-        for _ in range(8):
-            crc = (crc >> 1) ^ 0xA001 if crc & 1 else crc >> 1
-        table.append(crc)
-    return table
-
-
-_CRC_TABLE = _crc_table()
-
-
-def crc16(data: bytes) -> int:
-    """CRC-16/Modbus: reflected polynomial 0xA001, initial value 0xFFFF, no final XOR."""
-    crc = 0xFFFF
-    for byte in data:
-        crc = (crc >> 8) ^ _CRC_TABLE[(crc ^ byte) & 0xFF]
-    return crc
-
-
 def add_crc(body: bytes) -> bytes:
-    """Append the CRC, low byte first (§7.3.1 frame: 'CRC Low, CRC Hi')."""
-    crc = crc16(body)
-    return bytes(body) + bytes((crc & 0xFF, crc >> 8))
+    """Append the CRC, low byte first (§7.3.1 frame: 'CRC Low, CRC Hi'). pymodbus's
+    compute_CRC returns it byte-swapped, i.e. ready to be sent big-endian."""
+    return bytes(body) + FramerRTU.compute_CRC(bytes(body)).to_bytes(2, 'big')
 
 
 def crc_ok(frame: bytes) -> bool:
-    # The CRC over a frame including its own (low byte first) CRC is 0.
-    return len(frame) >= 4 and crc16(frame) == 0
+    return len(frame) >= 4 and FramerRTU.check_CRC(bytes(frame[:-2]),
+                                                   int.from_bytes(frame[-2:], 'big'))
 
 
 # ---------------------------------------------------------------------------------- frames
-class ModbusExceptionError(Exception):
-    """An exception response: raised by the simulator's handlers, decoded by the master."""
-
-    def __init__(self, function_code: int, code: int, text: str = ''):
-        self.function_code = function_code & 0x7F
-        self.code = code
-        name = EXCEPTION_NAMES.get(code, 'UNKNOWN EXCEPTION')
-        super().__init__(f'exception 0x{code:02X} {name}' + (f': {text}' if text else ''))
-
-
 class FrameError(Exception):
     """A frame that does not parse (the caller treats it like line noise)."""
 
 
-@dataclasses.dataclass(frozen=True)
-class Request:
-    """One request PDU with its slave address; `values` only for writes."""
-
-    unit: int
-    function_code: int
-    address: int
-    count: int = 1
-    values: tuple[int, ...] = ()
-
-    def encode(self) -> bytes:
-        fc = self.function_code
-        head = bytes((self.unit & 0xFF, fc)) + self.address.to_bytes(2, 'big')
-        if fc in (FC_READ_HOLDING_REGISTERS, FC_READ_INPUT_REGISTERS):
-            return add_crc(head + self.count.to_bytes(2, 'big'))
-        if fc == FC_WRITE_SINGLE_REGISTER:
-            return add_crc(head + (self.values[0] & 0xFFFF).to_bytes(2, 'big'))
-        if fc == FC_WRITE_MULTIPLE_REGISTERS:
-            data = b''.join((v & 0xFFFF).to_bytes(2, 'big') for v in self.values)
-            return add_crc(head + len(self.values).to_bytes(2, 'big') + bytes((len(data),)) + data)
-        raise ValueError(f'function code 0x{fc:02X} is not implemented (03, 04, 06, 16)')
-
-    @property
-    def reply_length(self) -> int:
-        """Bytes of the normal response frame (§7.4.1)."""
-        if self.function_code in (FC_READ_HOLDING_REGISTERS, FC_READ_INPUT_REGISTERS):
-            return 5 + 2 * self.count
-        return 8
-
-    def describe(self) -> str:
-        fc = self.function_code
-        if fc in (FC_READ_HOLDING_REGISTERS, FC_READ_INPUT_REGISTERS):
-            return f'FC{fc:02d} read {self.count} at 0x{self.address:02X}'
-        if fc == FC_WRITE_SINGLE_REGISTER:
-            return f'FC06 write 0x{self.values[0]:04X} at 0x{self.address:02X}'
-        return f'FC16 write {self.count} at 0x{self.address:02X}'
+def encode(request: Request) -> bytes:
+    """The RTU frame of a request: slave address, PDU, CRC (§7.3.1)."""
+    return add_crc(bytes((request.unit & 0xFF,)) + request.pdu())
 
 
-def read_request(unit: int, function_code: int, address: int, count: int) -> Request:
-    if function_code not in (FC_READ_HOLDING_REGISTERS, FC_READ_INPUT_REGISTERS):
-        raise ValueError(f'not a read function code: {function_code}')
-    if not 1 <= count <= MAX_READ_COUNT:
-        raise ValueError(f'read of {count} registers: allowed 1..{MAX_READ_COUNT} (§7.4.1)')
-    return Request(unit, function_code, address, count)
-
-
-def write_single_request(unit: int, address: int, value: int) -> Request:
-    return Request(unit, FC_WRITE_SINGLE_REGISTER, address, 1, (value & 0xFFFF,))
-
-
-def write_multiple_request(unit: int, address: int, values: Sequence[int]) -> Request:
-    if not 1 <= len(values) <= MAX_WRITE_COUNT:
-        raise ValueError(f'write of {len(values)} registers: allowed 1..{MAX_WRITE_COUNT} '
-                         '(§7.4.1)')
-    return Request(unit, FC_WRITE_MULTIPLE_REGISTERS, address, len(values),
-                   tuple(v & 0xFFFF for v in values))
+def reply_length(request: Request) -> int:
+    """Bytes of the normal response frame (§7.4.1)."""
+    return request.reply_pdu_length + 3
 
 
 def request_length(head: bytes) -> int | None:
@@ -278,33 +183,11 @@ def response_for(request: Request, request_frame: bytes, registers: Sequence[int
     return write_multiple_response(request.unit, request.address, request.count)
 
 
-class ReplyMismatch(Exception):
-    """A well-formed reply that does not answer the request (address, FC, length, echo)."""
-
-
-def parse_response(frame: bytes, request: Request, request_frame: bytes) -> list[int]:
+def parse_response(frame: bytes, request: Request) -> list[int]:
     """Registers of a read reply ([] for a write); ModbusExceptionError, ReplyMismatch."""
     if frame[0] != request.unit:
         raise ReplyMismatch(f'reply from address {frame[0]}, asked {request.unit}')
-    fc = frame[1]
-    if fc == request.function_code | EXCEPTION_FLAG:
-        raise ModbusExceptionError(fc, frame[2])
-    if fc != request.function_code:
-        raise ReplyMismatch(f'reply with function code 0x{fc:02X} to '
-                            f'0x{request.function_code:02X}')
-    if fc in (FC_READ_HOLDING_REGISTERS, FC_READ_INPUT_REGISTERS):
-        if frame[2] != 2 * request.count or len(frame) != 5 + frame[2]:
-            raise ReplyMismatch(f'{frame[2]} data bytes for {request.count} registers')
-        return [int.from_bytes(frame[3 + 2 * i:5 + 2 * i], 'big') for i in range(request.count)]
-    if fc == FC_WRITE_SINGLE_REGISTER:
-        if frame != request_frame:
-            raise ReplyMismatch(f'FC06 reply {frame.hex(" ")} is not the echo of '
-                                f'{request_frame.hex(" ")}')
-        return []
-    if frame[2:6] != request_frame[2:6]:
-        raise ReplyMismatch(f'FC16 reply for address/quantity {frame[2:6].hex(" ")}, asked '
-                            f'{request_frame[2:6].hex(" ")}')
-    return []
+    return parse_reply_pdu(bytes(frame[1:-2]), request)
 
 
 # ---------------------------------------------------------------------------------- master
@@ -316,7 +199,7 @@ class _BadCrc(Exception):
     pass
 
 
-class ModbusRtuBus(drive.Bus):
+class ModbusRtuBus(ModbusBus):
     """The master on one serial line; several slaves (by address) share it.
 
     Every request waits for t3.5 of silence since the last byte on the line, is written whole,
@@ -394,21 +277,9 @@ class ModbusRtuBus(drive.Bus):
                 'retries': self.retried, 'stale_bytes': self.stale_bytes}
 
     # Transactions -------------------------------------------------------------------------------
-    def read_holding_registers(self, unit: int, address: int, count: int) -> list[int]:
-        return self.transact(read_request(unit, FC_READ_HOLDING_REGISTERS, address, count))
-
-    def read_input_registers(self, unit: int, address: int, count: int) -> list[int]:
-        return self.transact(read_request(unit, FC_READ_INPUT_REGISTERS, address, count))
-
-    def write_register(self, unit: int, address: int, value: int) -> None:
-        self.transact(write_single_request(unit, address, value))
-
-    def write_registers(self, unit: int, address: int, values: Sequence[int]) -> None:
-        self.transact(write_multiple_request(unit, address, values))
-
     def transact(self, request: Request) -> list[int]:
-        frame = request.encode()
-        what = f'{self.port} unit {request.unit}: {request.describe()}'
+        frame = encode(request)
+        what = f'{self.port} unit {request.unit}: {request.describe(hex_address=True)}'
         with self._lock:
             port = self._serial
             if port is None:
@@ -421,11 +292,11 @@ class ModbusRtuBus(drive.Bus):
                 self.transactions += 1
                 try:
                     reply = self._exchange(port, frame, request)
-                    return parse_response(reply, request, frame)
+                    return parse_response(reply, request)
                 except ModbusExceptionError as exc:
                     self.errors += 1
                     self.exceptions += 1
-                    raise drive.DriveError(f'{what}: {exc}') from None
+                    raise exc.within(what) from None
                 except _NoReply as exc:
                     self.errors += 1
                     self.timeouts += 1
@@ -455,7 +326,7 @@ class ModbusRtuBus(drive.Bus):
             self.stale_bytes += len(stale)
         port.write(frame)
         # The request and the reply take their time on the line; timeout_s is the slave's part.
-        deadline = (time.monotonic() + frame_time_s(len(frame) + request.reply_length,
+        deadline = (time.monotonic() + frame_time_s(len(frame) + reply_length(request),
                                                     self.baudrate) + self.timeout_s)
         reply = self._read_frame(port, deadline)
         self._idle_at = time.monotonic() + self.t35_s

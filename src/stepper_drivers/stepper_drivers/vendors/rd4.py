@@ -44,6 +44,7 @@ from typing import Any, Callable, Mapping
 
 from ..drive import (Bus, Drive, DriveError, DriveState, Homing, HomingState, IdentityError,
                      LinkError, Motion, ParamSpec, State, Steps, Vendor, register_type)
+from .. import param_rules
 from ..protocol.modbus_rtu import ModbusRtuBus
 from . import rd4_map as rm
 from .rd4_map import HR, IR
@@ -821,7 +822,8 @@ def _number(params: Mapping[str, Any], name: str, default: Any, kind: type, allo
             from None
 
 
-def make_bus(params: Mapping[str, Any]) -> ModbusRtuBus:
+def _line_settings(params: Mapping[str, Any]) -> tuple:
+    """(port, baud, parity, stopbits, timeout_s, retries) of the line, or ValueError."""
     port = str(params.get('port', ''))
     if not port:
         raise ValueError("parameter port: '' (allowed: a serial device such as /dev/ttyUSB0, "
@@ -845,11 +847,16 @@ def make_bus(params: Mapping[str, Any]) -> ModbusRtuBus:
     if not timeout_s > 0 or not 0 <= retries <= 5:
         raise ValueError(f'parameter timeout_s/retries: {timeout_s:g} s / {retries} (allowed: '
                          'timeout_s > 0, retries 0..5)')
-    return ModbusRtuBus(port, baud, parity, stopbits or need, timeout_s=timeout_s,
-                        retries=retries)
+    return port, baud, parity, stopbits or need, timeout_s, retries
 
 
-def make_drive(bus: Bus, name: str, params: Mapping[str, Any]) -> Rd4Drive:
+def make_bus(params: Mapping[str, Any]) -> ModbusRtuBus:
+    port, baud, parity, stopbits, timeout_s, retries = _line_settings(params)
+    return ModbusRtuBus(port, baud, parity, stopbits, timeout_s=timeout_s, retries=retries)
+
+
+def _check_drive(name: str, params: Mapping[str, Any]) -> None:
+    """The rules of one unit's parameters (with the bus-level ones), or ValueError."""
     prefix = f'parameter drives.{name}.'
     method = params.get('homing.method', HOMING_METHOD_PRESET)
     if method != HOMING_METHOD_PRESET:
@@ -863,7 +870,17 @@ def make_drive(bus: Bus, name: str, params: Mapping[str, Any]) -> Rd4Drive:
     if params.get('watchdog', True) and rate < MIN_WATCHDOG_POLL_HZ:
         raise ValueError(f'{prefix}watchdog: true needs publish_rate_hz >= '
                          f'{MIN_WATCHDOG_POLL_HZ:g} to keep the 1 s watchdog fed (now {rate:g})')
+
+
+def make_drive(bus: Bus, name: str, params: Mapping[str, Any]) -> Rd4Drive:
+    _check_drive(name, params)
     return Rd4Drive(bus, name, params)
+
+
+def validate(params: Mapping[str, Any]) -> list[str]:
+    """The RD4's parameter rules on the node's parameters (param_rules), at start-up and for
+    every run-time change: the line settings, and per unit homing, node ID and watchdog."""
+    return param_rules.check_each(params, _line_settings, _check_drive)
 
 
 VENDOR = Vendor(

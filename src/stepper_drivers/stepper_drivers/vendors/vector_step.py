@@ -11,6 +11,9 @@ that shows OPERATIONAL. After that the state comes from TxPDOs only, so `read_st
 bus traffic; the heartbeat consumer and the boot-up latch turn a silent or rebooted node into a
 LinkError (the node layer reconnects).
 
+Interpolated position (mode 7) is step-wise like the rest for its start (`start_interpolation`);
+the bus owner then sends one point per SYNC period (`interpolation_point`, one RxPDO4 frame).
+
 Every operation that waits or takes more than two transactions is step-wise (`drive.Steps`: one
 SDO or PDO exchange per step, `yield POLL_S` while waiting for a TxPDO); stop() is one frame (two
 during homing) and never waits.
@@ -29,12 +32,12 @@ import logging
 import time
 from typing import Any, Mapping
 
-from .. import cia402
+from .. import cia402, param_rules
 from ..cia402 import CW_BIT_NEW_SET_POINT, CW_ENABLE_OPERATION
 from ..drive import (Bus, Drive, DriveError, DriveState, Homing, HomingState, IdentityError,
                      LinkError, Motion, ParamSpec, State, Steps, Vendor, register_type)
-from ..protocol.canopen_link import (BITRATES, POLL_S, CanBus, RemoteDrive, SdoAbortError, pack,
-                                     unpack)
+from ..protocol.canopen_link import (BITRATES, MASTER, POLL_S, CanBus, RemoteDrive, SdoAbortError,
+                                     pack, unpack)
 from . import vector_step_map as vm
 
 logger = logging.getLogger(__name__)
@@ -44,6 +47,7 @@ ENABLE_TIMEOUT_S = 1.0
 DISABLE_TIMEOUT_S = 1.0
 FAULT_RESET_TIMEOUT_S = 0.4
 HANDSHAKE_TIMEOUT_S = 0.5
+IP_START_TIMEOUT_S = 0.5       # statusword bit 12 (ip mode active) after the enable, by TxPDO
 MODE_SWITCH_TIMEOUT_S = 0.5
 SAVE_TIMEOUT_S = 5.0           # Rloadsav 0x81 (EEPROM write) must read 0 again within this
 SAVE_POLL_S = 0.02
@@ -96,6 +100,66 @@ def parse_address(address: str) -> tuple[int, int]:
     return index, sub
 
 
+def _check_drive(name: str, params: Mapping[str, Any], master_heartbeat_ms: int) -> None:
+    """The rules of one drive's parameters (with the bus-level ones), or ValueError."""
+    bitrate = int(params.get('can.bitrate', 125000))
+    if bitrate not in BITRATES:
+        raise ValueError(f'can.bitrate: {bitrate} is not a Vector Step bit rate (allowed: '
+                         f'{", ".join(str(b) for b in BITRATES)}; Rcanbaud codes 0..7)')
+    method = int(params.get('homing.method', 35))
+    if method not in vm.HOMING_METHODS:
+        raise ValueError(f'drives.{name}.homing.method: {method} is not a Vector Step homing '
+                         f'method (allowed: {vm.HOMING_METHODS_TEXT}; see 0x6098)')
+    heartbeat_ms = int(params.get('heartbeat_period_ms', 100))
+    heartbeat_timeout_s = float(params.get('heartbeat_timeout_s', 1.0))
+    if heartbeat_ms and heartbeat_timeout_s * 1000.0 <= heartbeat_ms:
+        raise ValueError(f'drives.{name}.heartbeat_timeout_s: {heartbeat_timeout_s} '
+                         f'must exceed the heartbeat period ({heartbeat_ms} ms)')
+    sync_timeout_s = float(params.get('sync_timeout_s', 0.0))
+    sync_period_s = float(params.get('can.sync_period_s', 0.0))
+    if sync_timeout_s and not sync_period_s:
+        raise ValueError(f'drives.{name}.sync_timeout_s: {sync_timeout_s:g} needs the '
+                         'SYNC of this node (can.sync_period_s > 0); 0 leaves 0x1006 off')
+    if sync_timeout_s and sync_timeout_s < SYNC_TIMEOUT_MIN_PERIODS * sync_period_s:
+        raise ValueError(f'drives.{name}.sync_timeout_s: {sync_timeout_s:g} must be at '
+                         f'least {SYNC_TIMEOUT_MIN_PERIODS} x can.sync_period_s '
+                         f'({sync_period_s:g} s)')
+    if MASTER_HEARTBEAT_PERIODS * master_heartbeat_ms > 0xFFFF:
+        raise ValueError(f'can.master_heartbeat_ms: {master_heartbeat_ms}: '
+                         f'{MASTER_HEARTBEAT_PERIODS} periods must fit the 16-bit 0x1016 '
+                         f'time (at most {0xFFFF // MASTER_HEARTBEAT_PERIODS} ms)')
+
+
+def _node_id_errors(params: Mapping[str, Any]) -> list[str]:
+    """Two drives with one node-ID, or a drive on the node's own heartbeat node-ID: the rules
+    CanBus.claim applies when the drives are made (same messages)."""
+    bus = param_rules.bus_params(params)
+    taken: dict[int, str] = {}
+    if int(bus.get('can.master_heartbeat_ms', 0)):
+        taken[int(bus.get('can.master_node_id', 127))] = MASTER
+    errors = []
+    for name in param_rules.drive_names(params):
+        node_id = int(param_rules.drive_params(params, name).get('node_id', 1))
+        other = taken.setdefault(node_id, name)
+        if other == MASTER:
+            errors.append(f'drives.{name}.node_id: {node_id} is can.master_node_id, the '
+                          "node-ID of this node's own heartbeat (allowed: 1..127, one per "
+                          'device)')
+        elif other != name:
+            errors.append(f'drives.{name}.node_id: {node_id} is already the node-ID of '
+                          f'drive {other!r} on this bus (allowed: 1..127, one per drive)')
+    return errors
+
+
+def validate(params: Mapping[str, Any]) -> list[str]:
+    """The Vector Step's parameter rules on the node's parameters (param_rules), at start-up
+    and for every run-time change: node-IDs, and per drive bit rate, homing method, heartbeat,
+    SYNC watchdog and the node's own heartbeat."""
+    master_heartbeat_ms = int(params.get('can.master_heartbeat_ms', 0))
+    return _node_id_errors(params) + param_rules.check_each(
+        params, None, lambda name, view: _check_drive(name, view, master_heartbeat_ms))
+
+
 class VectorStepDrive(Drive):
     """One Vector Step on a CAN bus (node-ID = parameter `node_id`)."""
 
@@ -107,36 +171,13 @@ class VectorStepDrive(Drive):
         self.node_id = int(params.get('node_id', 1))
         bus.claim(self.node_id, name)
         self.address = self.node_id
-        bitrate = int(params.get('can.bitrate', 125000))
-        if bitrate not in BITRATES:
-            raise ValueError(f'can.bitrate: {bitrate} is not a Vector Step bit rate (allowed: '
-                             f'{", ".join(str(b) for b in BITRATES)}; Rcanbaud codes 0..7)')
+        _check_drive(name, params, self.can.master_heartbeat_ms)
         self.steps_per_rev = float(params.get('steps_per_rev', 3200.0))
-        method = int(params.get('homing.method', 35))
-        if method not in vm.HOMING_METHODS:
-            raise ValueError(f'drives.{name}.homing.method: {method} is not a Vector Step homing '
-                             f'method (allowed: {vm.HOMING_METHODS_TEXT}; see 0x6098)')
         self.heartbeat_ms = int(params.get('heartbeat_period_ms', 100))
         self.heartbeat_timeout_s = float(params.get('heartbeat_timeout_s', 1.0))
-        if self.heartbeat_ms and self.heartbeat_timeout_s * 1000.0 <= self.heartbeat_ms:
-            raise ValueError(f'drives.{name}.heartbeat_timeout_s: {self.heartbeat_timeout_s} '
-                             f'must exceed the heartbeat period ({self.heartbeat_ms} ms)')
         self.sync_timeout_s = float(params.get('sync_timeout_s', 0.0))
-        sync_period_s = float(params.get('can.sync_period_s', 0.0))
-        if self.sync_timeout_s and not sync_period_s:
-            raise ValueError(f'drives.{name}.sync_timeout_s: {self.sync_timeout_s:g} needs the '
-                             'SYNC of this node (can.sync_period_s > 0); 0 leaves 0x1006 off')
-        if self.sync_timeout_s and \
-                self.sync_timeout_s < SYNC_TIMEOUT_MIN_PERIODS * sync_period_s:
-            raise ValueError(f'drives.{name}.sync_timeout_s: {self.sync_timeout_s:g} must be at '
-                             f'least {SYNC_TIMEOUT_MIN_PERIODS} x can.sync_period_s '
-                             f'({sync_period_s:g} s)')
         # 0x1016:01 = node-ID << 16 | time [ms] [CONSUMER HEARTBEAT TIME]; 0 = not watched
         consumer_ms = MASTER_HEARTBEAT_PERIODS * self.can.master_heartbeat_ms
-        if consumer_ms > 0xFFFF:
-            raise ValueError(f'can.master_heartbeat_ms: {self.can.master_heartbeat_ms}: '
-                             f'{MASTER_HEARTBEAT_PERIODS} periods must fit the 16-bit 0x1016 '
-                             f'time (at most {0xFFFF // MASTER_HEARTBEAT_PERIODS} ms)')
         self.consumer_heartbeat = self.can.master_node_id << 16 | consumer_ms \
             if consumer_ms else 0
         self.event_timer_ms = int(params.get('tpdo_event_timer_ms', 100))
@@ -160,6 +201,7 @@ class VectorStepDrive(Drive):
         self._pdo_statusword: dict[int, int] = {}    # COB-ID -> statusword of its last TxPDO
         self._statusword_seen = (0, 0.0)             # (newest TxPDO statusword, when it came)
         self._burst_given_up: int | None = None
+        self._ip_active = False            # start_interpolation done; no stop or error since
 
     def _prefix(self) -> str:
         return f'{self.name} (node {self.node_id}): '
@@ -247,6 +289,7 @@ class VectorStepDrive(Drive):
         self._written.clear()
         self._fault_cache = None
         self._homing = HomingState.IDLE
+        self._ip_active = False
         try:
             yield from self._ping()
             rebooted = False
@@ -378,7 +421,9 @@ class VectorStepDrive(Drive):
         for number, entries in enumerate(vm.DRIVER_RPDOS, 1):
             yield from self.link.configure_pdo('rx', number, entries)
             yield 0.0
-        yield from self.link.configure_pdo('rx', 4, ())
+        for number in range(len(vm.DRIVER_RPDOS) + 1, 5):      # the others off
+            yield from self.link.configure_pdo('rx', number, ())
+            yield 0.0
         for number, entries in enumerate(vm.DRIVER_TPDOS, 1):
             yield 0.0
             timer = self.event_timer_ms if number == 2 else 0
@@ -494,6 +539,11 @@ class VectorStepDrive(Drive):
         if error_register & vm.ERROR_REGISTER_COMMUNICATION and \
                 emcy is not None and 0x8100 <= emcy.code <= 0x82FF:
             extra.append(f'EMCY 0x{emcy.code:04X}: {emcy.text}')
+        if not fault and emcy is not None and emcy.code in vm.IP_EMCY_CODES:
+            extra.append(f'EMCY 0x{emcy.code:04X}: {emcy.text}')   # the manual names no reaction
+        mode_text = vm.MODE_NAMES.get(mode, f'mode {mode}')
+        if mode == vm.MODE_INTERPOLATED and sw & vm.SW_BIT_IP_ACTIVE:
+            mode_text += ' (IP active)'
         moving = bool(sw & vm.SW_BIT_MOTOR_MOVING)
         # Bit 8 ("Motor moving", theoretical) off means the profile velocity is zero; TxPDO3
         # may still hold the last speed of a stop whose burst was given up.
@@ -504,8 +554,7 @@ class VectorStepDrive(Drive):
             target_reached=bool(sw & cia402.SW_BIT_TARGET_REACHED),
             homed=bool(rstsflg & vm.RSTSFLG_HOMED), homing=homing, fault=fault,
             fault_code=code, fault_text=text, alarms=tuple(extra),
-            mode=vm.MODE_NAMES.get(mode, f'mode {mode}'), status_word=sw,
-            position_steps=position, velocity_steps_s=velocity_hz)
+            mode=mode_text, status_word=sw, position_steps=position, velocity_steps_s=velocity_hz)
 
     def _homing_state(self, sw: int, mode: int) -> HomingState:
         """AEC homing bits: 12 "Home eseguito", 13 "Errore in azzeramento" ([STATUSWORD]).
@@ -725,14 +774,19 @@ class VectorStepDrive(Drive):
         self._command(cw, velocity=units)
 
     def stop(self, quick: bool = False) -> None:
-        """One frame: JOG bit 4 low, else the Rcmdwr STOP/ABORT bit (during homing also bit 4
-        low, which ends the homing run); never waits."""
+        """One frame: JOG or interpolation bit 4 low, else the Rcmdwr STOP/ABORT bit (during
+        homing and interpolation also bit 4 low, which ends the run); never waits."""
+        self._ip_active = False                      # no more interpolation points after this
         sw = self._read_statusword()
         if cia402.decode_state(sw) != State.OPERATION_ENABLED:
             return
         mode = self._value(vm.MODES_OF_OPERATION_DISPLAY)
         if mode == vm.MODE_JOG and not quick:
             self._command(CW_ENABLE_OPERATION)       # JOG: bit 4 = 0 is the stop, on 0x6084
+        elif mode == vm.MODE_INTERPOLATED and self._cw & vm.CW_BIT_IP_ENABLE and not quick:
+            # IP: bit 4 = 0 disables the interpolation (CiA 402; the manual has no IP column);
+            # the drive stops from its last segment (the simulator on the 0x605D stop ramp).
+            self._command(CW_ENABLE_OPERATION)
         else:
             # No halt bit (CW bit 8 is reserved): the AEC command register, one bit per write.
             self.link.write(vm.RCMDWR, vm.AEC_SUB, vm.RCMDWR_ABORT if quick else vm.RCMDWR_STOP)
@@ -740,6 +794,89 @@ class VectorStepDrive(Drive):
                 self._command(CW_ENABLE_OPERATION)  # the run), JOG start, PP new set-point
         if self._homing == HomingState.RUNNING:
             self._homing = HomingState.IDLE
+
+    # ------------------------------------------------------------------ interpolated position
+    def start_interpolation(self, period_s: float) -> Steps[int]:
+        """Interpolated position mode (7), ready for `interpolation_point` once per SYNC period;
+        returns the position it holds. Sub-mode 0x60C0 = 0 (linear), period 0x60C2, mode 7
+        (0x6061 confirms), controlword bit 4 and statusword bit 12 (CiA 402 "enable ip mode" /
+        "ip mode active": the manual has no IP column), then both elements of the buffer 0x60C1
+        = the actual position, so nothing moves. [INTERPOLATION DATA RECORD]: "Il movimento
+        interpolato del drive inizia dopo aver abilitato il profilo interpolazione e aver
+        scritto entrambi gli elementi del buffer": the second write starts it, and the last
+        step, so that the owner's first point follows at once. From then on the drive takes
+        one element per SYNC: the first point must come within two SYNC periods (EMCY FF03)."""
+        self._ip_active = False
+        sync_s = self.can.sync_period_s
+        units = round(period_s * 1000.0)            # 0x60C2:02 = 0xFD: units of 10^-3 s
+        low, high = vm.IP_PERIOD_UNITS
+        if abs(period_s - sync_s) > 1e-9 or not low <= units <= high or \
+                abs(units / 1000.0 - period_s) > 1e-9:
+            raise DriveError(f'interpolation period {period_s:g} s: can.sync_period_s '
+                             f'({sync_s:g} s) must equal it, and it must be {low / 1000.0:g}..'
+                             f'{high / 1000.0:g} s in whole ms (0x60C2 interpolation time '
+                             f'period: ip_time_units {low}..{high}, ip_time_index 0xFD = ms)')
+        self._require_enabled('interpolation')
+        yield from self._write_once(
+            (vm.INTERPOLATION_SUBMODE_SELECT, 0, vm.IP_SUBMODE_LINEAR),
+            (vm.INTERPOLATION_TIME_PERIOD, 2, vm.IP_TIME_INDEX_MS),
+            (vm.INTERPOLATION_TIME_PERIOD, 1, units))
+        self._homing = HomingState.IDLE
+        if self._cw & vm.CW_BIT_IP_ENABLE:       # bit 4 low first: the enable is its rise
+            self._command(CW_ENABLE_OPERATION)
+            yield 0.0
+        yield from self._ensure_mode(vm.MODE_INTERPOLATED)
+        sw = self._barrier()                     # the frames before are handled: at rest?
+        if sw & vm.SW_BIT_MOTOR_MOVING or cia402.decode_state(sw) != State.OPERATION_ENABLED:
+            raise DriveError(f'interpolation: the drive is not enabled at rest '
+                             f'({cia402.describe(sw)}, statusword 0x{sw:04X}); stop it first')
+        yield 0.0
+        position = int(self.link.read(vm.POSITION_ACTUAL_VALUE))
+        if self.link.emcy is not None and self.link.emcy.code in vm.IP_EMCY_CODES:
+            self.link.emcy = None                # an earlier run's alarm
+        self._command(CW_ENABLE_OPERATION | vm.CW_BIT_IP_ENABLE)
+        ok = yield from self.link.wait(
+            lambda: self._value(vm.STATUSWORD) & vm.SW_BIT_IP_ACTIVE, IP_START_TIMEOUT_S)
+        if not ok:
+            sw = self._barrier()
+            if not sw & vm.SW_BIT_IP_ACTIVE:
+                raise DriveError(f'{self._prefix()}statusword 0x{sw:04X} does not show bit 12 '
+                                 f'(ip mode active) {IP_START_TIMEOUT_S:g} s after controlword '
+                                 f'0x{self._cw:04X} in mode 7')
+        for sub in (1, 2):
+            yield 0.0
+            self.link.write(vm.INTERPOLATION_DATA_RECORD, sub, position)
+        self._ip_active = True
+        logger.info('%sinterpolation started at %d steps, period %g s', self._prefix(), position,
+                    period_s)
+        return position
+
+    def interpolation_point(self, position_steps: int) -> None:
+        """The next position: ONE frame (RxPDO4: the controlword, 0x60C1:01), no SDO, no wait.
+        The bus owner calls it once per SYNC period, best right after the SYNC: the drive takes
+        one element of its two-position buffer at every SYNC (none left: EMCY FF03)."""
+        value = self._checked(vm.INTERPOLATION_DATA_RECORD, 1, int(position_steps),
+                              'interpolation point [steps]')
+        if not self._ip_active:
+            raise DriveError(f'{self._prefix()}interpolation point: no interpolation running '
+                             '(start_interpolation first; a stop or an error ends it)')
+        sw = self._read_statusword()
+        if cia402.decode_state(sw) != State.OPERATION_ENABLED or \
+                not sw & vm.SW_BIT_IP_ACTIVE:
+            self._ip_active = False
+            emcy = self.link.emcy
+            why = f'; EMCY 0x{emcy.code:04X}: {emcy.text}' \
+                if emcy is not None and emcy.code in vm.IP_EMCY_CODES else ''
+            raise DriveError(f'{self._prefix()}interpolation ended by the drive '
+                             f'({cia402.describe(sw)}{why})')
+        node = self.link.node
+        if node is None or not self.link.attached:
+            raise LinkError(f'{self._prefix()}not connected')
+        pdo = node.rpdo[4]
+        pdo[vm.CONTROLWORD].raw = self._cw
+        pdo[vm.INTERPOLATION_DATA_RECORD].raw = value        # its sub 1, the only one mapped
+        self.can.transactions += 1
+        self.can.send(pdo.cob_id, bytes(pdo.data))
 
     def start_homing(self, homing: Homing) -> Steps[str]:
         method = int(homing.method)

@@ -65,6 +65,11 @@ MOTION_PROFILE_TYPE = 0x6086
 HOMING_METHOD = 0x6098
 HOMING_SPEEDS = 0x6099              # sub 1 search for switch, sub 2 search for zero
 HOMING_ACCELERATION = 0x609A
+INTERPOLATION_SUBMODE_SELECT = 0x60C0        # 0 = linear interpolation (the only one)
+INTERPOLATION_DATA_RECORD = 0x60C1           # subs 1, 2: "buffer a due posizioni", steps
+INTERPOLATION_TIME_PERIOD = 0x60C2           # sub 1 units 1..10, sub 2 index 0xFD (10^-3 s)
+INTERPOLATION_SYNC_DEFINITION = 0x60C3
+INTERPOLATION_DATA_CONFIGURATION = 0x60C4    # sub 2 actual size, sub 6 buffer clear/enable
 DIGITAL_INPUTS = 0x60FD
 DIGITAL_OUTPUTS = 0x60FE
 MOTOR_TYPE = 0x6402
@@ -148,6 +153,16 @@ SW_BIT_MOTOR_MOVING = 1 << 8         # manufacturer use of bit 8 ("Motor moving"
 SW_BIT_HOMING_ATTAINED = 1 << 12     # homing: "Home eseguito"
 SW_BIT_HOMING_ERROR = 1 << 13        # homing: "Errore in azzeramento"
 SW_BIT_JOG_STOPPED = 1 << 12         # JOG: "1 = Motore fermo"
+# Interpolated position (7): the manual's CW/SW tables have no IP column; these are CiA 402's.
+CW_BIT_IP_ENABLE = 1 << 4            # IP: 1 = enable interpolation (CiA 402 "enable ip mode")
+SW_BIT_IP_ACTIVE = 1 << 12           # IP: 1 = interpolation active (CiA 402 "ip mode active")
+
+# --- Interpolated position mode [INTERPOLATION SUBMODE SELECT] .. [INTERPOLATION DATA CONFIG.] --
+IP_SUBMODE_LINEAR = 0
+IP_BUFFER_SIZE = 2                   # 0x60C4:01 max_buffer_size
+IP_TIME_INDEX_MS = 0xFD              # 0x60C2:02, the only value: 10^-3 s (UNSIGNED8 for -3)
+IP_PERIOD_UNITS = (1, 10)            # 0x60C2:01 range: 1..10 ms
+IP_BUFFER_CLEAR, IP_BUFFER_ENABLE = 0, 1     # 0x60C4:06 values
 
 # --- Homing methods [HOMING METHOD] (0x6098, also Rhmode 0x2052) ---------------------------------
 # Every method resets the position and sets the homed flag ("Reset quota: Si, Flag Sincro: Si").
@@ -248,6 +263,11 @@ DRIVER_OBJECTS: tuple[Obj, ...] = (
     Obj(HOMING_SPEEDS, 1, 'Speed during search for switch', 'u32', 'rw'),
     Obj(HOMING_SPEEDS, 2, 'Speed during search for zero', 'u32', 'rw'),
     Obj(HOMING_ACCELERATION, 0, 'Homing acceleration', 'u32', 'rw'),
+    Obj(INTERPOLATION_SUBMODE_SELECT, 0, 'Interpolation sub mode select', 'i16', 'rw'),
+    Obj(INTERPOLATION_DATA_RECORD, 1, '1st_ip_function_parameter', 'i32', 'rw', 'R'),
+    Obj(INTERPOLATION_DATA_RECORD, 2, '2nd_ip_function_parameter', 'i32', 'rw', 'R'),
+    Obj(INTERPOLATION_TIME_PERIOD, 1, 'ip_time_units', 'u8', 'rw'),
+    Obj(INTERPOLATION_TIME_PERIOD, 2, 'ip_time_index', 'u8', 'rw'),
     Obj(SUPPORTED_DRIVE_MODES, 0, 'Supported drive modes', 'u32', 'ro'),
     Obj(RCMDWR, AEC_SUB, 'Rcmdwr', 'u16', 'wo'),
     Obj(RLOADSAV, AEC_SUB, 'Rloadsav', 'u16', 'rw'),
@@ -268,6 +288,8 @@ DRIVER_RPDOS: tuple[tuple[tuple[int, int, int], ...], ...] = (
     ((CONTROLWORD, 0, 16), (MODES_OF_OPERATION, 0, 8)),        # RxPDO1 (= manual default)
     ((CONTROLWORD, 0, 16), (TARGET_POSITION, 0, 32)),          # RxPDO2 (= manual default)
     ((CONTROLWORD, 0, 16), (PROFILE_VELOCITY, 0, 32)),         # RxPDO3: JOG start + speed
+    # RxPDO4: one interpolation point per SYNC period (0x60C1 is "WMAP" [TAVOLA RIASSUNTIVA])
+    ((CONTROLWORD, 0, 16), (INTERPOLATION_DATA_RECORD, 1, 32)),
 )
 DRIVER_TPDOS: tuple[tuple[tuple[int, int, int], ...], ...] = (
     ((STATUSWORD, 0, 16), (MODES_OF_OPERATION_DISPLAY, 0, 8)),  # TxPDO1 (= manual default)
@@ -346,6 +368,11 @@ EMCY_PDO_TOO_LONG = 0x8210
 EMCY_PDO_TOO_SHORT = 0x8220
 EMCY_NVRAM = 0xFF01
 EMCY_HOME_ERROR = 0xFF02
+EMCY_IP_NO_DATA = 0xFF03             # interpolation buffer empty at a SYNC (underflow)
+EMCY_IP_SYNC_EARLY = 0xFF04
+EMCY_IP_SYNC_LATE = 0xFF05
+IP_EMCY_CODES = (EMCY_IP_NO_DATA, EMCY_IP_SYNC_EARLY, EMCY_IP_SYNC_LATE)
+IP_EMCY_DATA = b'\x01\x00'           # "VSD[0]==1, VSD[1]==0 fissi"
 HOME_ERROR_CODES = (0xFF02, 0xFF06, 0xFF07)
 
 # 0x1001 bits [ERROR REGISTER]

@@ -26,7 +26,7 @@ import math
 import time
 from typing import Any, Callable, Mapping
 
-from .. import drive
+from .. import drive, param_rules
 from ..drive import (DriveError, DriveState, HomingState, LinkError, Motion, RefusedError,
                      State)
 from ..protocol import xmind_k as xk
@@ -259,6 +259,44 @@ class Job:
 
 
 # ------------------------------------------------------------------------------------ drive
+def _check_address(name: str, number: int, taken: Mapping[str, int], url: str) -> None:
+    """Address `number` of drive `name` is not one of `taken` (drive -> address), or
+    ValueError."""
+    for other, used in taken.items():
+        if other != name and used == number:
+            raise ValueError(f'parameter drives.{name}.address: {number:02d} is already used by '
+                             f'drive {other} on {url} (allowed: a free address 0..47)')
+
+
+def _check_drive(name: str, params: Mapping[str, Any]) -> None:
+    """The rules of one drive's own parameters, or ValueError."""
+    p = f'drives.{name}.'
+    method = int(params['homing.method'])
+    if method not in HOMING_METHODS:
+        raise ValueError(f'parameter {p}homing.method: {method} is not an X-MIND K method '
+                         '(allowed: ' + '; '.join(f'{k} = {v}' for k, v in
+                                                  HOMING_METHODS.items()) + ')')
+    resolution = str(params['resolution'])
+    spr = float(params['steps_per_rev'])
+    if resolution and spr != xk.RESOLUTIONS[resolution]:
+        raise ValueError(f'parameter {p}steps_per_rev: {spr:g} does not match resolution '
+                         f'{resolution} (allowed: {xk.RESOLUTIONS[resolution]}, §4.2.2.3)')
+
+
+def validate(params: Mapping[str, Any]) -> list[str]:
+    """The X-MIND K's parameter rules on the node's parameters (param_rules), at start-up and for
+    every run-time change: one address per drive on the line, and per drive homing method and
+    resolution. Pure: it never builds a drive (a drive records its address in bus.addresses)."""
+    taken: dict[str, int] = {}
+    url = str(params.get('port', ''))
+    errors = []
+    for name in param_rules.drive_names(params):
+        number = int(param_rules.drive_params(params, name).get('address', 0))
+        errors += param_rules.first_error(_check_address, name, number, taken, url)
+        taken.setdefault(name, number)
+    return errors + param_rules.check_each(params, None, _check_drive)
+
+
 class XmindKDrive(drive.Drive):
     """One X-MIND K. Step-wise (drive.py): every operation of more than one string yields 0.0
     between its strings, and its waits yield; stop() is one string.
@@ -270,23 +308,10 @@ class XmindKDrive(drive.Drive):
     def __init__(self, bus: XmindKBus, name: str, params: Mapping[str, Any]):
         super().__init__(bus, name, params)
         self.number = int(params['address'])       # the drive address AA (§2.2.1)
-        p = f'drives.{name}.'
-        for other, number in bus.addresses.items():
-            if other != name and number == self.number:
-                raise ValueError(f'parameter {p}address: {self.number:02d} is already used by '
-                                 f'drive {other} on {bus.url} (allowed: a free address 0..47)')
-        method = int(params['homing.method'])
-        if method not in HOMING_METHODS:
-            raise ValueError(f'parameter {p}homing.method: {method} is not an X-MIND K method '
-                             '(allowed: ' + '; '.join(f'{k} = {v}' for k, v in
-                                                      HOMING_METHODS.items()) + ')')
+        _check_address(name, self.number, bus.addresses, bus.url)
+        _check_drive(name, params)
         self.resolution = str(params['resolution'])
-        spr = float(params['steps_per_rev'])
-        if self.resolution and spr != xk.RESOLUTIONS[self.resolution]:
-            raise ValueError(f'parameter {p}steps_per_rev: {spr:g} does not match resolution '
-                             f'{self.resolution} (allowed: {xk.RESOLUTIONS[self.resolution]}, '
-                             '§4.2.2.3)')
-        self.steps_per_rev = spr
+        self.steps_per_rev = float(params['steps_per_rev'])
         self.presets_wanted = {k: v for k, v in (
             ('IN', int(params['current_preset'])), ('RD', int(params['answer_delay_ms'])),
             ('EQ', int(params['equalization']))) if v >= 0}

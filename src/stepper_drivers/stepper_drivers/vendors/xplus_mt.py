@@ -16,7 +16,7 @@ import math
 import time
 from typing import Any, Mapping, Sequence
 
-from .. import cia402
+from .. import cia402, param_rules
 from ..cia402 import (CW_BIT_CHANGE_SET_IMMEDIATELY, CW_BIT_HALT, CW_BIT_NEW_SET_POINT,
                       CW_ENABLE_OPERATION, SW_BIT_FOLLOWING_ERROR, SW_BIT_INTERNAL_LIMIT,
                       SW_BIT_TARGET_REACHED, SW_BIT_VOLTAGE_ENABLED, SW_BIT_WARNING,
@@ -60,6 +60,8 @@ _NO_SUCH_REGISTER = (0x01, 0x02)   # ILLEGAL FUNCTION / ILLEGAL DATA ADDRESS
 class XplusMtDrive(Drive):
     """One X-PLUS MT on a Modbus TCP connection (unit id = parameter `unit_id`)."""
 
+    start_stop_steps_s = float(xm.START_STOP_MAX_HZ)     # §13 "Motion Profiles"
+
     def __init__(self, bus: Bus, name: str, params: Mapping[str, Any]):
         super().__init__(bus, name, params)
         if not isinstance(bus, ModbusTcpBus):
@@ -83,7 +85,7 @@ class XplusMtDrive(Drive):
 
     # ------------------------------------------------------------------ register helpers
     def _read_words(self, address: int, count: int) -> list[int]:
-        return self.mb.read_registers(self.unit_id, address, count)
+        return self.mb.read_holding_registers(self.unit_id, address, count)
 
     def _read(self, name: str) -> int:
         reg = REG[name]
@@ -125,7 +127,7 @@ class XplusMtDrive(Drive):
         return self._read_words(1001, 1)[0]
 
     def _write_controlword(self, cw: int) -> None:
-        self.mb.write_registers(self.unit_id, 1040, [cw], single=True)
+        self.mb.write_register(self.unit_id, 1040, cw)
 
     # ------------------------------------------------------------------ life cycle
     def _identity_read(self, address: int, count: int) -> list[int]:
@@ -525,8 +527,8 @@ class XplusMtDrive(Drive):
         if self._watchdog_armed:
             self._write(('COUNTER_WATCHDOG', 0))
         try:
-            self.mb.write_registers(self.unit_id, xm.SAVE_PARAMS_REGISTER,
-                                    [xm.SAVE_PARAMS_SIGNATURE], single=True)
+            self.mb.write_register(self.unit_id, xm.SAVE_PARAMS_REGISTER,
+                                   xm.SAVE_PARAMS_SIGNATURE)
             echo = self._read_words(xm.SAVE_PARAMS_REGISTER, 1)[0]
         except ModbusExceptionError:
             if self._watchdog_armed:     # refused: the link is fine, re-arm before reporting
@@ -588,7 +590,10 @@ class XplusMtDrive(Drive):
             raise DriveError(f'{reg}: {value} would change the 32-bit word order the driver '
                              f"uses (word_order parameter '{self.word_order}'); change the "
                              f'word_order parameter and the drive together')
-        self.mb.write_registers(self.unit_id, reg.address, words, single=reg.words == 1)
+        if reg.words == 1:
+            self.mb.write_register(self.unit_id, reg.address, words[0])
+        else:
+            self.mb.write_registers(self.unit_id, reg.address, words)
         if reg.address == 1040:
             self.cia.controlword = words[0]
             self._was_enabled = False       # a raw controlword is a command too
@@ -623,6 +628,10 @@ PARAMS = (
 )
 
 
+# Per-drive parameters that give a drive a link of its own (Vendor.drive_bus_params).
+DRIVE_BUS_PARAMS = ('host', 'port')
+
+
 def make_bus(params: Mapping[str, Any]) -> ModbusTcpBus:
     """Bus params 'host', 'port' and the common 'timeout_s'. For a drive with its own host or
     port the node passes the bus params with the drive's non-empty values in their place."""
@@ -635,7 +644,17 @@ def _check_choice(key: str, value: Any, allowed: Sequence[Any], what: str) -> No
                          f'{", ".join(map(str, allowed))})')
 
 
-def make_drive(bus: Bus, name: str, params: Mapping[str, Any]) -> XplusMtDrive:
+def _check_link(params: Mapping[str, Any]) -> None:
+    """What protocol.modbus_tcp.make_bus refuses, without making the bus (same messages)."""
+    if not str(params.get('host', '127.0.0.1')).strip():
+        raise ValueError("host: '' (allowed: an IP address or host name of the Modbus server)")
+    port = params.get('port', 502)
+    if isinstance(port, bool) or not isinstance(port, int) or not 1 <= port <= 65535:
+        raise ValueError(f'port: {port!r} (allowed: a TCP port 1..65535)')
+
+
+def _check_drive(name: str, params: Mapping[str, Any]) -> None:
+    """The rules of one drive's parameters (with the bus-level ones), or ValueError."""
     prefix = f'drives.{name}.'
     method = params.get('homing.method', 35)
     if method not in xm.HOMING_METHODS:
@@ -672,7 +691,18 @@ def make_drive(bus: Bus, name: str, params: Mapping[str, Any]) -> XplusMtDrive:
         raise ValueError(f'{prefix}homing.method: {method} needs the home switch on I0, but '
                          f'{prefix}input_config {input_config} has bit 0 = 1 (I0 general '
                          f'purpose, §13 "Register 1088"); clear bit 0 (e.g. 14)')
+
+
+def make_drive(bus: Bus, name: str, params: Mapping[str, Any]) -> XplusMtDrive:
+    _check_drive(name, params)
     return XplusMtDrive(bus, name, params)
+
+
+def validate(params: Mapping[str, Any]) -> list[str]:
+    """The X-PLUS MT's parameter rules on the node's parameters (param_rules), at start-up and
+    for every run-time change: each drive's link, and per drive homing method, unit id, word
+    order, resolution, watchdog against the poll rate, input config."""
+    return param_rules.check_each(params, _check_link, _check_drive, DRIVE_BUS_PARAMS)
 
 
 VENDOR = Vendor(
@@ -682,5 +712,5 @@ VENDOR = Vendor(
     make_drive=make_drive,
     # float: the common parameter steps_per_rev is a double (params.py)
     drive_defaults={'steps_per_rev': float(xm.STEPS_PER_REV), 'homing.method': 35},
-    drive_bus_params=('host', 'port'),
+    drive_bus_params=DRIVE_BUS_PARAMS,
 )

@@ -1,0 +1,341 @@
+"""Following joint trajectories through the bus owners (no rclpy).
+
+Threads and what they own:
+- Each `Run` (one accepted trajectory) has a thread of its own that only waits for segment times
+  and submits jobs; every call to a drive runs in that drive's bus owner as a COMMAND job (in
+  order with the drive's other commands; a stop overtakes and drops it).
+- `Follower.follow()` / `stop()` are called from the ROS executor thread; the run threads only
+  read the supervisors' snapshots.
+
+How the axes arrive together (trajectory.py has the plan): at each segment's start time every
+moving axis gets one move job. Inside the job, in the owner thread, the profile is computed again
+for the time that is really left (the segment's end minus now): an axis whose job started late,
+behind other drives' jobs on a serial line, moves a little faster and arrives with the others.
+Each arrives later than the point's time by its drive's own start-up (the transactions of its
+move_to before the set point: on a serial line tens of milliseconds), the same for drives of one
+kind. If the time left is too short within the joint's limits, it keeps the planned profile and
+arrives late (the goal tolerance decides).
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import dataclasses
+import logging
+import math
+import threading
+import time
+from typing import Callable
+
+from .drive import Drive, Motion, is_steps
+from .supervisor import COMMAND, URGENT, BusSupervisor
+from .trajectory import JointLimits, Segment, Trajectory, TrajectoryError, plan, trapezoid
+
+logger = logging.getLogger(__name__)
+
+TICK_S = 0.02                 # how often a run checks tolerances and cancellation
+GOAL_WAIT_MAX_S = 10.0        # without a goal_time_tolerance: the longest wait for standstill
+
+# Result codes, as control_msgs/action/FollowJointTrajectory names them.
+SUCCESSFUL = 0
+INVALID_GOAL = -1
+INVALID_JOINTS = -2
+OLD_HEADER_TIMESTAMP = -3
+PATH_TOLERANCE_VIOLATED = -4
+GOAL_TOLERANCE_VIOLATED = -5
+REPLACED = 'replaced by a newer trajectory'
+
+
+@dataclasses.dataclass
+class Axis:
+    """One joint the follower may move."""
+
+    joint: str
+    drive_name: str
+    sup: BusSupervisor
+    drive: Drive
+    limits: JointLimits
+
+    def position_steps(self) -> float:
+        return float(self.sup.slots[self.drive_name].state.position_steps)
+
+    def moving(self) -> bool:
+        return bool(self.sup.slots[self.drive_name].state.moving)
+
+
+@dataclasses.dataclass(frozen=True)
+class Outcome:
+    """How a run ended: status 'succeeded', 'aborted' or 'canceled', the result code and why."""
+
+    status: str
+    code: int
+    text: str
+
+
+def _succeeded(text: str) -> Outcome:
+    return Outcome('succeeded', SUCCESSFUL, text)
+
+
+def _aborted(code: int, text: str) -> Outcome:
+    return Outcome('aborted', code, text)
+
+
+@dataclasses.dataclass(frozen=True)
+class Tolerances:
+    """Per joint, in steps; 0 or absent: not checked (JointTrajectoryController's meaning)."""
+
+    path_steps: dict[str, float] = dataclasses.field(default_factory=dict)
+    goal_steps: dict[str, float] = dataclasses.field(default_factory=dict)
+    goal_time_s: float = 0.0
+
+
+class Run:
+    """One trajectory being followed; `done` resolves to an Outcome."""
+
+    def __init__(self, follower: 'Follower', traj: Trajectory, start_t: float,
+                 start_steps: dict[str, float], segments: list[Segment], tol: Tolerances):
+        self.follower = follower
+        self.traj = traj
+        self.start_t = start_t
+        self.start_steps = start_steps
+        self.segments = segments
+        self.tol = tol
+        self.done: concurrent.futures.Future = concurrent.futures.Future()
+        self.end_t = start_t + (traj.points[-1].time_s if traj.points else 0.0)
+        self._cancel = threading.Event()
+        self._cancel_why = ''
+        self._replaced_at: float | None = None
+        self._jobs: list[concurrent.futures.Future] = []
+        self.final_steps = dict(start_steps)
+        for point in traj.points:
+            self.final_steps.update(zip(traj.joints, point.positions_steps))
+        self._thread = threading.Thread(target=self._run, name='trajectory', daemon=True)
+
+    # ------------------------------------------------------------------------ other threads
+    def desired_steps(self, t: float) -> dict[str, float]:
+        """Where each joint of the trajectory should be at monotonic time t (the planned
+        trapezoids)."""
+        clock_s = t - self.start_t
+        pos = dict(self.start_steps)
+        for seg in self.segments:
+            if clock_s <= seg.start_s:
+                break
+            tau = min(clock_s, seg.end_s) - seg.start_s
+            for m in seg.moves:
+                pos[m.joint] = _along(pos[m.joint], m.target_steps, m.velocity_steps_s,
+                                      m.acceleration_steps_s2, tau)
+        return pos
+
+    def cancel(self, why: str) -> None:
+        self._cancel_why = why
+        self._cancel.set()
+
+    def replace_at(self, t: float) -> None:
+        """A newer trajectory takes over from monotonic time t: no segment from then on."""
+        self._replaced_at = t
+
+    # ------------------------------------------------------------------------- the thread
+    def _run(self) -> None:
+        try:
+            self.done.set_result(self._follow())
+        except Exception as exc:  # noqa: BLE001 - every failure ends in an outcome
+            logger.exception('trajectory run failed')
+            self._stop_axes()
+            self.done.set_result(_aborted(INVALID_GOAL, f'trajectory failed: {exc!r}'))
+
+    def _follow(self) -> Outcome:
+        clock = self.follower.clock
+        previous = dict(self.start_steps)
+        for seg in self.segments:
+            seg_t = self.start_t + seg.start_s
+            if self._replaced_at is not None and seg_t >= self._replaced_at:
+                return _aborted(SUCCESSFUL, REPLACED)
+            problem = self._wait_until(seg_t)
+            if problem is not None:
+                return problem
+            if self._replaced_at is not None and clock() >= self._replaced_at:
+                return _aborted(SUCCESSFUL, REPLACED)
+            for move in seg.moves:
+                axis = self.follower.axes[move.joint]
+                self._jobs.append(axis.sup.submit(
+                    axis.drive_name, COMMAND,
+                    self._move_job(axis, move, previous[move.joint], self.start_t + seg.end_s),
+                    f'trajectory segment to {move.target_steps:g} steps', disarms=True))
+                previous[move.joint] = move.target_steps
+        problem = self._wait_until(self.end_t)
+        if problem is not None:
+            return problem
+        if self._replaced_at is not None:
+            return _aborted(SUCCESSFUL, REPLACED)
+        # goal_time_tolerance 0: no time limit (JointTrajectoryController's meaning), here until
+        # every joint stands still, at most GOAL_WAIT_MAX_S
+        deadline = self.end_t + (self.tol.goal_time_s or GOAL_WAIT_MAX_S)
+        while True:
+            problem = self._check()
+            if problem is not None:
+                return problem
+            far = self._off_goal()
+            if not far:
+                return _succeeded('every joint reached its goal')
+            if not self.tol.goal_time_s and not any(
+                    self.follower.axes[j].moving() for j in self.traj.joints):
+                return _aborted(GOAL_TOLERANCE_VIOLATED, '; '.join(far))
+            if clock() >= deadline:
+                self._stop_axes()
+                return _aborted(GOAL_TOLERANCE_VIOLATED, '; '.join(far))
+            self._cancel.wait(TICK_S)
+
+    def _move_job(self, axis: Axis, move, from_steps: float, end_t: float) -> Callable:
+        clock = self.follower.clock
+
+        def job():
+            left = end_t - clock()
+            lim = axis.limits
+            profile = trapezoid(move.target_steps - from_steps, left, lim.max_velocity_steps_s,
+                                lim.max_acceleration_steps_s2, lim.start_stop_steps_s) \
+                if left > 0 else 'late'
+            if isinstance(profile, str):
+                profile = (move.velocity_steps_s, move.acceleration_steps_s2)
+            v, a = profile
+            if math.isinf(a):                    # start-stop: the drive ignores the ramp
+                a = lim.max_acceleration_steps_s2
+            result = axis.drive.move_to(int(round(move.target_steps)), Motion(v, a, a))
+            if is_steps(result):
+                result = yield from result
+            return result
+        return job
+
+    def _wait_until(self, t: float) -> Outcome | None:
+        clock = self.follower.clock
+        while True:
+            problem = self._check()
+            if problem is not None:
+                return problem
+            left = t - clock()
+            if left <= 0:
+                return None
+            self._cancel.wait(min(left, TICK_S))
+
+    def _check(self) -> Outcome | None:
+        if self._cancel.is_set():
+            return Outcome('canceled', SUCCESSFUL, self._cancel_why or 'canceled')
+        if self._replaced_at is not None and self.follower.clock() >= self._replaced_at:
+            return _aborted(SUCCESSFUL, REPLACED)
+        for fut in self._jobs:
+            if fut.done() and fut.exception() is not None:
+                self._stop_axes()
+                return _aborted(INVALID_GOAL, f'a segment failed: {fut.exception()}')
+        now = self.follower.clock()
+        desired = self.desired_steps(now)
+        for joint, tol in self.tol.path_steps.items():
+            if tol > 0 and joint in desired:
+                err = self.follower.axes[joint].position_steps() - desired[joint]
+                if abs(err) > tol:
+                    self._stop_axes()
+                    return _aborted(PATH_TOLERANCE_VIOLATED,
+                                    f'{joint}: {err:+.0f} steps from the path (path tolerance '
+                                    f'{tol:g} steps) at {now - self.start_t:.3f} s')
+        return None
+
+    def _off_goal(self) -> list[str]:
+        far = []
+        for joint in self.traj.joints:
+            axis = self.follower.axes[joint]
+            tol = self.tol.goal_steps.get(joint, 0.0) or 1.0   # unset: the final step
+            err = axis.position_steps() - self.final_steps[joint]
+            if abs(err) > tol or axis.moving():
+                far.append(f'{joint}: {err:+.0f} steps from the goal (goal tolerance {tol:g} '
+                           f'steps){", still moving" if axis.moving() else ""}')
+        return far
+
+    def _stop_axes(self) -> None:
+        for joint in self.traj.joints:
+            self.follower.stop_axis(self.follower.axes[joint], 'trajectory stopped')
+
+
+def _along(p0: float, p1: float, v: float, a: float, tau: float) -> float:
+    """Position tau into a symmetric trapezoid from p0 to p1 with cruise v and ramps a."""
+    d = abs(p1 - p0)
+    if d == 0 or v <= 0 or a <= 0:
+        return p1
+    sign = 1.0 if p1 > p0 else -1.0
+    t_ramp = 0.0 if math.isinf(a) else v / a
+    total = d / v + t_ramp
+    if tau >= total:
+        return p1
+    if t_ramp == 0.0:
+        s = v * tau
+    elif tau < t_ramp:
+        s = 0.5 * a * tau * tau
+    elif tau < total - t_ramp:
+        s = 0.5 * a * t_ramp * t_ramp + v * (tau - t_ramp)
+    else:
+        s = d - 0.5 * a * (total - tau) ** 2
+    return p0 + sign * min(s, d)
+
+
+class Follower:
+    """The node's trajectories: one at a time; a new one replaces the rest of the one before
+    it from its own start time; an empty one stops the joints of the one running."""
+
+    def __init__(self, axes: dict[str, Axis], clock: Callable[[], float] = time.monotonic):
+        self.axes = axes
+        self.clock = clock
+        self._lock = threading.Lock()
+        self.current: Run | None = None
+
+    def follow(self, traj: Trajectory, start_t: float | None = None,
+               tol: Tolerances = Tolerances()) -> Run:
+        """Plan and start `traj` at monotonic start_t (None: now); TrajectoryError (nothing
+        moves) when it cannot be followed."""
+        now = self.clock()
+        start_t = now if start_t is None else start_t
+        if traj.points and start_t + traj.points[-1].time_s < now:
+            ago = now - start_t - traj.points[-1].time_s
+            raise TrajectoryError(f'the trajectory ended {ago:.3f} s ago (header.stamp plus '
+                                  'the last time_from_start)')
+        with self._lock:
+            old = self.current
+            take_over = max(start_t, now)
+            if old is not None and not old.done.done():
+                start_steps = old.desired_steps(take_over)
+                start_steps = {j: start_steps.get(j, self.axes[j].position_steps())
+                               for j in traj.joints}
+            else:
+                start_steps = {j: self.axes[j].position_steps() for j in traj.joints}
+            segments = plan(traj, start_steps, {j: self.axes[j].limits for j in traj.joints},
+                            from_s=max(0.0, now - start_t))
+            run = Run(self, traj, start_t, start_steps, segments, tol)
+            if old is not None and not old.done.done():
+                old.replace_at(take_over)
+                # joints the new trajectory does not name hold: those the old one was moving
+                # stop at the take-over (JointTrajectoryController holds them the same way)
+                held = [j for j in old.traj.joints if j not in traj.joints]
+                if held:
+                    self._stop_later(old, held, take_over)
+            self.current = run
+        run._thread.start()
+        return run
+
+    def _stop_later(self, old: Run, joints: list[str], t: float) -> None:
+        def stop():
+            for j in joints:
+                self.stop_axis(self.axes[j], 'held: not in the newer trajectory')
+        delay = t - self.clock()
+        if delay <= 0:
+            stop()
+        else:
+            timer = threading.Timer(delay, stop)
+            timer.daemon = True
+            timer.start()
+
+    def stop(self, why: str) -> None:
+        """An empty trajectory: stop the joints of the running one, end it."""
+        with self._lock:
+            run = self.current
+        if run is not None and not run.done.done():
+            run.cancel(why)
+            run._stop_axes()
+
+    def stop_axis(self, axis: Axis, label: str) -> concurrent.futures.Future:
+        return axis.sup.submit(axis.drive_name, URGENT, axis.drive.stop, label, disarms=True)

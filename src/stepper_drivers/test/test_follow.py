@@ -1,0 +1,124 @@
+"""Follower (follow.py) against the X-PLUS MT simulator through a real BusSupervisor, no ROS:
+axes that start together and arrive together, replaced and empty trajectories, a segment that
+fails, tolerances. Bounds come from the settings: the poll period and one transaction."""
+
+import dataclasses
+import time
+
+import pytest
+
+from stepper_drivers.follow import REPLACED, Axis, Follower
+from stepper_drivers.supervisor import COMMAND, BusSupervisor
+from stepper_drivers.tools.processes import wait_for
+from stepper_drivers.trajectory import JointLimits, TrajectoryError, build
+from stepper_drivers.vendors.xplus_mt import VENDOR
+from stepper_sim.xplus_mt_sim import XplusMtDriveConfig, XplusMtSim
+
+RATE_HZ = 50.0
+POLL_S = 1.0 / RATE_HZ
+TRANSACTION_S = 0.005          # one Modbus TCP transaction on loopback, with margin
+LIMITS = JointLimits(min_steps=-1e6, max_steps=1e6, max_velocity_steps_s=50_000.0,
+                     max_acceleration_steps_s2=200_000.0)
+JOINTS = ['j1', 'j2']
+
+
+@pytest.fixture
+def rig(tmp_path):
+    cfgs = [XplusMtDriveConfig(f'axis{u}', unit_id=u, serial_number=300 + u,
+                               home_switch_steps=None, limit_neg_steps=None,
+                               limit_pos_steps=None) for u in (1, 2)]
+    sim = XplusMtSim(port=0, drives=cfgs, strict=False, storage_dir=str(tmp_path))
+    sim.start()
+    bus = VENDOR.make_bus({'host': '127.0.0.1', 'port': sim.port, 'timeout_s': 0.5})
+    drives = {f'axis{u}': VENDOR.make_drive(bus, f'axis{u}', {
+        'unit_id': u, 'word_order': 'little', 'steps_per_rev': 12800, 'joint_name': f'j{u}'})
+        for u in (1, 2)}
+    sup = BusSupervisor(bus, drives, {'publish_rate_hz': RATE_HZ, 'command_timeout_s': 0.5,
+                                      'reconnect_period_s': 0.2})
+    sup.start()
+    try:
+        wait_for(lambda: all(s.connected and s.polls for s in sup.slots.values()), 5.0,
+                 'both drives connected')
+        for name, d in drives.items():
+            sup.submit(name, COMMAND, d.enable, 'enable').result(5.0)
+        # The drive takes its first set point max(200 ms, register 1096) after current-on
+        # (manual §12; the driver waits for it): trajectories here start after that.
+        time.sleep(0.25)
+        limits = dataclasses.replace(LIMITS, start_stop_steps_s=drives['axis1'].start_stop_steps_s)
+        axes = {f'j{u}': Axis(f'j{u}', f'axis{u}', sup, drives[f'axis{u}'], limits)
+                for u in (1, 2)}
+        yield sim, sup, Follower(axes)
+    finally:
+        sup.shutdown(1.0, disable=drives)
+        sim.stop()
+
+
+def true_steps(sim, joint):
+    return sim.drives[f'axis{joint[1]}'].true_position_steps
+
+
+def arrival_times(sim, run, times, targets_by_point, timeout_s):
+    """First time (from the run's start) each joint is within 0.5 % of its segment's
+    distance from each point, after the point before it was due, sampled every millisecond
+    from the simulator's own axis."""
+    seen = {}
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline and len(seen) < sum(map(len, targets_by_point)):
+        now = time.monotonic() - run.start_t
+        for k, targets in enumerate(targets_by_point):
+            if k and now < times[k - 1]:
+                continue
+            for joint, (target, dist) in targets.items():
+                if (k, joint) not in seen and abs(true_steps(sim, joint) - target) <= \
+                        max(0.005 * dist, 2):
+                    seen[(k, joint)] = now
+        time.sleep(0.001)
+    return seen
+
+
+def test_axes_start_together_and_arrive_together_at_every_waypoint(rig):
+    sim, sup, follower = rig
+    traj = build(JOINTS, [0.5, 1.0], [[8000, 2000], [4000, 6000]], known=JOINTS)
+    run = follower.follow(traj)
+    targets = [{'j1': (8000, 8000), 'j2': (2000, 2000)}, {'j1': (4000, 4000), 'j2': (6000, 4000)}]
+    seen = arrival_times(sim, run, [0.5, 1.0], targets, 3.0)
+    outcome = run.done.result(3.0)
+    assert outcome.status == 'succeeded', outcome
+    for k, t_point in enumerate((0.5, 1.0)):
+        t1, t2 = seen[(k, 'j1')], seen[(k, 'j2')]
+        assert abs(t1 - t2) <= POLL_S + TRANSACTION_S, (k, t1, t2)
+        assert abs(t1 - t_point) <= POLL_S + TRANSACTION_S, (k, t1)
+
+
+def test_an_impossible_segment_is_refused_before_anything_moves(rig):
+    sim, sup, follower = rig
+    before = {j: true_steps(sim, j) for j in JOINTS}
+    traj = build(JOINTS, [0.1], [[100_000, 0]], known=JOINTS)
+    with pytest.raises(TrajectoryError, match='j1: segment to point 0 .*max_acceleration'):
+        follower.follow(traj)
+    time.sleep(2 * POLL_S)
+    assert {j: true_steps(sim, j) for j in JOINTS} == before
+
+
+def test_a_newer_trajectory_replaces_the_rest_of_the_old_from_its_start(rig):
+    sim, sup, follower = rig
+    old = follower.follow(build(JOINTS, [0.4, 2.0], [[4000, 4000], [40_000, 40_000]],
+                                known=JOINTS))
+    wait_for(lambda: time.monotonic() - old.start_t > 0.45, 2.0, 'the first point')
+    new = follower.follow(build(['j1'], [0.4], [[0]], known=JOINTS))
+    assert old.done.result(2.0).text == REPLACED
+    assert new.done.result(3.0).status == 'succeeded'
+    assert abs(true_steps(sim, 'j1')) <= 2
+    # j2 is not in the newer one: it holds near the first point, it never goes to 40000
+    assert abs(true_steps(sim, 'j2') - 4000) < 1000
+
+
+def test_an_empty_trajectory_stops_the_running_one(rig):
+    sim, sup, follower = rig
+    run = follower.follow(build(JOINTS, [2.0], [[40_000, -40_000]], known=JOINTS))
+    wait_for(lambda: abs(true_steps(sim, 'j1')) > 2000, 2.0, 'motion')
+    follower.stop('empty trajectory')
+    outcome = run.done.result(2.0)
+    assert outcome.status == 'canceled'
+    wait_for(lambda: not any(s.state.moving for s in sup.slots.values()), 2.0, 'standstill')
+    assert abs(true_steps(sim, 'j1')) < 30_000

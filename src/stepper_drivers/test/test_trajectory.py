@@ -1,0 +1,90 @@
+"""trajectory.py: the checks and the synchronized segments, without ROS."""
+
+import math
+
+import pytest
+
+from stepper_drivers.trajectory import (JointLimits, TrajectoryError, build, plan, sample,
+                                        trapezoid)
+
+LIM = JointLimits(min_steps=-1e6, max_steps=1e6, max_velocity_steps_s=4000.0,
+                  max_acceleration_steps_s2=20000.0, steps_per_unit=1000.0, unit='rad')
+
+
+def profile_distance(v, a, t):
+    """Distance of the symmetric trapezoid (v, a) that lasts t."""
+    return v * (t - v / a)
+
+
+@pytest.mark.parametrize('d, t', [(1000, 1.0), (10, 0.05), (3999, 1.0), (1, 2.0)])
+def test_trapezoid_covers_the_distance_in_exactly_the_time(d, t):
+    v, a = trapezoid(d, t, 1e9, 20000.0)
+    assert a == 20000.0
+    assert profile_distance(v, a, t) == pytest.approx(d, rel=1e-9)
+    assert v <= a * t / 2                                     # a real trapezoid (or triangle)
+
+
+def test_trapezoid_names_the_limit_it_would_exceed():
+    # 1000 steps in 0.2 s need >= 4 * 1000 / 0.04 = 100000 steps/s^2
+    why = trapezoid(1000, 0.2, 1e9, 20000.0)
+    assert isinstance(why, str) and 'max_acceleration is 2e+04' in why and '1.02e+05' in why
+    # 3000 steps in 1 s at 20000 steps/s^2 need v = (2e4 - sqrt(4e8 - 2.4e8)) / 2 = 3675.4
+    why = trapezoid(3000, 1.0, 3000.0, 20000.0)
+    assert isinstance(why, str) and '3675 steps/s' in why and 'max_velocity is 3000' in why
+    assert trapezoid(3000, 1.0, 3700.0, 20000.0)[0] == pytest.approx(3675.4, abs=0.1)
+
+
+def test_axes_of_one_segment_arrive_together():
+    traj = build(['a', 'b'], [1.0, 1.5], [[1000, -200], [1000, 300]], known=['a', 'b', 'c'])
+    segs = plan(traj, {'a': 0.0, 'b': 0.0}, {'a': LIM, 'b': LIM})
+    assert [(s.start_s, s.end_s) for s in segs] == [(0.0, 1.0), (1.0, 1.5)]
+    first = {m.joint: m for m in segs[0].moves}
+    for joint, dist in (('a', 1000), ('b', 200)):
+        m = first[joint]
+        assert profile_distance(m.velocity_steps_s, m.acceleration_steps_s2, 1.0) == \
+            pytest.approx(dist)
+    assert [m.joint for m in segs[1].moves] == ['b']          # a holds: no move sent
+    assert segs[1].moves[0].target_steps == 300
+
+
+def test_an_impossible_segment_is_refused_before_anything_naming_joint_point_and_limit():
+    traj = build(['a', 'b'], [1.0, 1.1], [[100, 0], [100, 5000]], known=['a', 'b'])
+    with pytest.raises(TrajectoryError, match=r"b: segment to point 1 \(1 s to 1.1 s\) needs an "
+                                              r'acceleration .*max_acceleration'):
+        plan(traj, {'a': 0.0, 'b': 0.0}, {'a': LIM, 'b': LIM})
+
+
+def test_a_point_beyond_the_position_limits_is_refused_in_joint_units():
+    lim = JointLimits(-1000, 1000, 4000, 20000, steps_per_unit=1000.0, unit='rad')
+    traj = build(['a'], [1.0], [[1500]], known=['a'])
+    with pytest.raises(TrajectoryError, match=r'a: point 0 at 1.5 rad is outside '
+                                              r'min_position..max_position \(-1..1 rad\)'):
+        plan(traj, {'a': 0.0}, {'a': lim})
+
+
+@pytest.mark.parametrize('joints, times, positions, why', [
+    (['x'], [1.0], [[0]], r"joints \['x'\] are not driven by this node"),
+    (['a', 'a'], [1.0], [[0, 0]], 'name a joint twice'),
+    (['a'], [1.0, 1.0], [[0], [1]], r'point 1: time_from_start 1 s does not increase'),
+    (['a'], [-0.5], [[0]], r'point 0: time_from_start -0.5 s'),
+    (['a'], [1.0], [[0, 1]], r'point 0: 2 positions for 1 joints'),
+    (['a'], [1.0], [[math.nan]], r"point 0: position of \['a'\] is not a number"),
+])
+def test_malformed_trajectories_are_refused(joints, times, positions, why):
+    with pytest.raises(TrajectoryError, match=why):
+        build(joints, times, positions, known=['a', 'b'])
+
+
+def test_a_trajectory_started_in_the_past_skips_the_points_already_due():
+    traj = build(['a'], [1.0, 2.0, 3.0], [[100], [200], [300]], known=['a'])
+    segs = plan(traj, {'a': 150.0}, {'a': LIM}, from_s=1.5)
+    assert [(s.start_s, s.end_s) for s in segs] == [(1.5, 2.0), (2.0, 3.0)]
+    assert segs[0].moves[0].target_steps == 200
+
+
+def test_sample_is_linear_between_points_and_holds_at_the_ends():
+    traj = build(['a', 'b'], [1.0, 2.0], [[100, 10], [300, 10]], known=['a', 'b'])
+    start = {'a': 0.0, 'b': 10.0}
+    assert sample(traj, start, 0.5) == {'a': 50.0, 'b': 10.0}
+    assert sample(traj, start, 1.5) == {'a': 200.0, 'b': 10.0}
+    assert sample(traj, start, 9.0) == {'a': 300.0, 'b': 10.0}

@@ -1,0 +1,203 @@
+"""docs/adding_a_vendor.md is what the code needs (issue 11 item 6).
+
+The page's code blocks (each `# file: <path>`, and the `# row:` block) are the toy vendor. This
+test writes them into a temporary directory, with copies of vendor_table.py and both setup.py that
+get the row appended, and shows that the table's readers pick the vendor up with no other file
+edited: the console scripts of both packages, the `toy_node` executable function, stepperctl's
+tables, the launch file as `ros2 launch` runs it, and the node itself (parameters declared from
+config/toy.yaml, the toy's validate() refusing a bad value at start-up and at run time, a drive
+that answers its simulator).
+"""
+
+from __future__ import annotations
+
+import importlib
+import importlib.util
+import re
+import runpy
+import shutil
+import sys
+
+import pytest
+from rosharness import ROOT
+from stepper_drivers import vendor_table
+import yaml
+
+DOC = ROOT / 'docs' / 'adding_a_vendor.md'
+BLOCK = re.compile(r'```(?:python|yaml)\n# (file|row): (\S+)[^\n]*\n(.*?)```', re.S)
+KEY = 'toy'
+
+
+def doc_blocks() -> tuple[dict[str, str], str]:
+    """({path: text} of the `# file:` blocks, the row's text)."""
+    files, rows = {}, []
+    for kind, path, body in BLOCK.findall(DOC.read_text()):
+        if kind == 'file':
+            files[path] = body
+        else:
+            rows.append(body.strip())
+    assert len(rows) == 1, rows
+    return files, rows[0]
+
+
+def table_with_row(row_text: str) -> str:
+    """vendor_table.py with the row appended to ROWS."""
+    text = (ROOT / 'src/stepper_drivers/stepper_drivers/vendor_table.py').read_text()
+    end = text.index('\n)\n', text.index('ROWS: tuple[VendorRow, ...] = ('))
+    return text[:end] + '\n    ' + row_text.replace('\n', '\n    ') + ',' + text[end:]
+
+
+@pytest.fixture(scope='module')
+def toy(tmp_path_factory):
+    """The page's files and the row in a temporary tree shaped like the workspace."""
+    tmp = tmp_path_factory.mktemp('ws')
+    files, row_text = doc_blocks()
+    for path, text in files.items():
+        (tmp / path).parent.mkdir(parents=True, exist_ok=True)
+        (tmp / path).write_text(text)
+    for package in ('stepper_drivers', 'stepper_sim'):
+        (tmp / 'src' / package).mkdir(parents=True, exist_ok=True)
+        shutil.copy(ROOT / 'src' / package / 'setup.py', tmp / 'src' / package / 'setup.py')
+    table = tmp / 'src/stepper_drivers/stepper_drivers/vendor_table.py'
+    table.parent.mkdir(parents=True, exist_ok=True)
+    table.write_text(table_with_row(row_text))
+    return tmp, files
+
+
+def test_the_walk_through_writes_the_pieces_the_table_names(toy):
+    """The files of the page are exactly the pieces the row's conventions point at."""
+    _tmp, files = toy
+    rows = runpy.run_path(str(_tmp / 'src/stepper_drivers/stepper_drivers/vendor_table.py'))
+    row = rows['BY_KEY'][KEY]
+    module_file = 'src/stepper_drivers/' + row.module.replace('.', '/') + '.py'
+    sim_file = 'src/stepper_sim/' + row.simulator.split(':')[0].replace('.', '/') + '.py'
+    assert set(files) == {
+        module_file, module_file.replace('.py', '_map.py'), sim_file,
+        f'config/{row.params_file}', f'config/{row.sim_params_file}',
+        f'src/stepper_drivers/launch/{row.launch_file}'}
+    assert [r.key for r in rows['ROWS']] == [*vendor_table.KEYS, KEY]
+
+
+def console_scripts(setup_py) -> dict[str, str]:
+    import setuptools
+    captured = {}
+    saved = setuptools.setup
+    setuptools.setup = lambda **kwargs: captured.update(kwargs)
+    try:
+        runpy.run_path(str(setup_py))
+    finally:
+        setuptools.setup = saved
+    return dict(line.replace(' ', '').split('=')
+                for line in captured['entry_points']['console_scripts'])
+
+
+def test_both_setup_py_make_the_console_scripts_from_the_row(toy):
+    tmp, _files = toy
+    drivers = console_scripts(tmp / 'src/stepper_drivers/setup.py')
+    sims = console_scripts(tmp / 'src/stepper_sim/setup.py')
+    assert drivers['toy_node'] == 'stepper_drivers.entry_points:toy_node'
+    assert sims['toy_sim'] == 'stepper_sim.toy_sim:main'
+    # and without the row, as the workspace is
+    assert 'toy_node' not in console_scripts(ROOT / 'src/stepper_drivers/setup.py')
+
+
+def load(name: str, path) -> object:
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture
+def installed(toy, monkeypatch):
+    """The toy modules importable under their package names, the table with the row in place of
+    vendor_table, and the table's readers reloaded on it (and back afterwards)."""
+    tmp, _files = toy
+    for name in ('stepper_drivers.vendor_table', 'stepper_drivers.vendors.toy_map',
+                 'stepper_drivers.vendors.toy', 'stepper_sim.toy_sim'):
+        monkeypatch.setitem(sys.modules, name, sys.modules.get(name))
+    import stepper_drivers
+    src = tmp / 'src/stepper_drivers/stepper_drivers'
+    monkeypatch.setattr(stepper_drivers, 'vendor_table',
+                        load('stepper_drivers.vendor_table', src / 'vendor_table.py'))
+    load('stepper_drivers.vendors.toy_map',
+         tmp / 'src/stepper_drivers/stepper_drivers/vendors/toy_map.py')
+    toy_module = load('stepper_drivers.vendors.toy',
+                      tmp / 'src/stepper_drivers/stepper_drivers/vendors/toy.py')
+    import stepper_sim
+    sim = load('stepper_sim.toy_sim', tmp / 'src/stepper_sim/stepper_sim/toy_sim.py')
+    from stepper_drivers import entry_points
+    from stepper_drivers.cli import main, scan
+    readers = [importlib.reload(m) for m in (entry_points, scan, main)]
+    try:
+        yield tmp, toy_module, sim, readers
+    finally:
+        monkeypatch.undo()
+        for m in readers:
+            importlib.reload(m)
+        del stepper_sim
+
+
+def test_the_executable_and_stepperctl_know_the_vendor(installed):
+    _tmp, _toy, _sim, (entry_points, scan, main) = installed
+    assert callable(entry_points.toy_node) and entry_points.toy_node.__name__ == 'toy_node'
+    assert scan.NODE_NAMES['toy'] == 'toy_node' and scan.ADDRESS_NAMES['toy'] == 'address'
+    assert 'toy' not in scan.SCANNERS            # no scan_help: no scanner needed
+    args = main.build_parser().parse_args(['scan', 'rd4', '--port', 'x'])
+    assert args.vendor == 'rd4'
+
+
+def test_the_node_runs_on_the_row_with_the_vendors_rules(installed, monkeypatch):
+    import rclpy
+    from rclpy.parameter import Parameter
+    from stepper_drivers.drive import complete
+    from stepper_drivers.node import DriveNode
+    from stepper_drivers.params import ParameterError, declare_all
+    tmp, toy_module, sim, _readers = installed
+    config = str(tmp / 'config' / 'toy.yaml')
+    monkeypatch.setenv('ROS_AUTOMATIC_DISCOVERY_RANGE', 'OFF')     # in no graph (see there)
+
+    def node(*ros_args):
+        args = ['toy_node', '--ros-args', '--params-file', config, *ros_args]
+        rclpy.try_shutdown()
+        rclpy.init(args=args)
+        return DriveNode(toy_module.VENDOR, 'toy_node', lambda n: declare_all(
+            n, toy_module.VENDOR, args, toy_module.validate))
+
+    try:
+        with pytest.raises(ParameterError,
+                           match=r'drives.axis2.address: 1 is already used by drive axis1'):
+            node('-p', 'drives.axis2.address:=1')
+        n = node()
+        try:
+            joints = [h.cfg.joint_name for h in n.handles.values()]
+            assert joints == ['toy_joint1', 'toy_joint2']
+            (r,) = n.set_parameters([Parameter('drives.axis1.homing.method', value=19)])
+            assert not r.successful and 'is not a Toy Step method' in r.reason, r.reason
+            sim.main('toy0', (1, 2))
+            drive = n.handles['axis1'].drive
+            assert complete(drive.connect()) == {'address': '1'}
+            complete(drive.move_to(123, None))
+            assert complete(drive.read_state()).position_steps == 123
+        finally:
+            n.destroy_node()
+    finally:
+        rclpy.try_shutdown()
+
+
+def test_the_launch_file_starts_the_node_and_with_sim_true_the_simulator(toy, monkeypatch):
+    import test_launch_files as tl
+    tmp, files = toy
+    config = tmp / 'config'
+    for f in tl.CONFIG_DIR.glob('*.yaml'):
+        shutil.copy(f, config / f.name)
+    monkeypatch.setattr(tl, 'CONFIG_DIR', config)
+    text = files['src/stepper_drivers/launch/toy.launch.py']
+    sources = {'toy.launch.py': text}
+    assert tl.ros2_launch('toy.launch.py', sources) == {'toy_node': ['config/toy.yaml']}
+    assert tl.ros2_launch('toy.launch.py', sources, sim='true') == {
+        'toy_sim': ['config/toy_sim.yaml'], 'toy_node': ['config/toy.yaml']}
+    node_p, sim_p = (next(iter(yaml.safe_load((config / n).read_text()).values()))
+                     ['ros__parameters'] for n in ('toy.yaml', 'toy_sim.yaml'))
+    assert node_p['port'] == sim_p['port']
