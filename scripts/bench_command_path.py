@@ -63,9 +63,8 @@ os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from std_msgs.msg import Float64  # noqa: E402
 from std_srvs.srv import SetBool  # noqa: E402
-from stepper_drivers.tools.client import RosClient  # noqa: E402
-from stepper_drivers.tools.processes import CONFIG, Proc, executable, free_port, \
-    wait_for  # noqa: E402
+from stepper_drivers.cli.ros_client import RosClient  # noqa: E402
+from stepper_sim.harness import CONFIG, Proc, executable, free_port, wait_for  # noqa: E402
 from stepper_drivers_msgs.msg import DriveStatus  # noqa: E402
 import yaml  # noqa: E402
 
@@ -388,7 +387,7 @@ def start_sim_line(s: Setup, wire: Wire | None) -> list[str]:
         return ['-p', f'port:={node_path}']
     # vector_step: broker, the probe on it (from the start: it sees the SDOs of the connect)
     port = free_port()
-    broker = s.proc([executable('stepper_drivers', 'socketcand_broker'), '--port', str(port)],
+    broker = s.proc([executable('stepper_sim', 'socketcand_broker'), '--port', str(port)],
                     'broker')
     broker.wait_line('listening', 10)
     if wire is not None:
@@ -775,7 +774,7 @@ def cpu_case(case: str, ros: RosClient, log_dir: pathlib.Path, window_s: float) 
             sim_pid = sims.pid
         else:
             port = free_port()
-            broker = s.proc([executable('stepper_drivers', 'socketcand_broker'), '--port',
+            broker = s.proc([executable('stepper_sim', 'socketcand_broker'), '--port',
                              str(port)], 'broker')
             broker.wait_line('listening', 10)
             sim_params = load_params('vector_step_sim.yaml', 'vector_step_sim')

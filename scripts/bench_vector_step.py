@@ -27,8 +27,8 @@ from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
 from std_msgs.msg import Float64  # noqa: E402
 from std_srvs.srv import SetBool  # noqa: E402
-from stepper_drivers.tools.client import RosClient  # noqa: E402
-from stepper_drivers.tools.processes import Proc, executable, free_port  # noqa: E402
+from stepper_drivers.cli.ros_client import RosClient  # noqa: E402
+from stepper_sim.harness import Proc, executable, free_port  # noqa: E402
 from stepper_drivers_msgs.msg import DriveStatus  # noqa: E402
 import yaml  # noqa: E402
 
@@ -82,7 +82,7 @@ def run(n: int, window_s: float, log_dir: pathlib.Path) -> dict:
     procs: list[Proc] = []
     ros = RosClient(f'bench_vector_step_{n}')
     try:
-        broker = Proc([executable('stepper_drivers', 'socketcand_broker'), '--port', str(port)],
+        broker = Proc([executable('stepper_sim', 'socketcand_broker'), '--port', str(port)],
                       log_dir, f'broker{n}')
         procs.append(broker)
         broker.wait_line('listening', 10.0)

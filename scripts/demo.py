@@ -3,9 +3,12 @@
 
 Every vendor in DEMOS at once (in parallel): its simulator and its node (the params files in
 config/, on a free port or pty), then per drive, also in parallel: enable, home, the moves of
-`targets`, a velocity run that the node's watchdog stops (no more velocity_command after 1 s),
-disable. A live status table shows every drive meanwhile; at the end a plot of commanded versus
-actual position of every drive over time is written (default out/demo_positions.png). Exits 0
+`targets`; then, per bus, one two-axis trajectory through ~/follow_joint_trajectory (both axes
+arrive at each point together); then per drive a velocity run that the node's watchdog stops (no
+more velocity_command after 1 s), disable. A live status table shows every drive meanwhile; at
+the end a plot of commanded versus actual position of every drive over time is written (default
+out/demo_positions.png), and one of each bus's two-axis path, actual against commanded
+(demo_positions_paths.png beside it). Exits 0
 when every step worked, leaving no process behind. Run it with scripts/demo.sh (which bootstraps
 the workspace first).
 """
@@ -26,9 +29,8 @@ os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
 from std_msgs.msg import Float64  # noqa: E402
 from std_srvs.srv import SetBool, Trigger  # noqa: E402
 from stepper_drivers.cli import view  # noqa: E402
-from stepper_drivers.tools.client import RosClient  # noqa: E402
-from stepper_drivers.tools.processes import (CONFIG, ROOT, Proc, executable,  # noqa: E402
-                                             free_port)
+from stepper_drivers.cli.ros_client import RosClient  # noqa: E402
+from stepper_sim.harness import CONFIG, ROOT, Proc, executable, free_port  # noqa: E402
 from stepper_drivers_msgs.msg import DriveStatus  # noqa: E402
 
 # vendor: simulator, node, params files, the parameter that carries the link address, and the moves
@@ -53,6 +55,9 @@ POSITION_TOLERANCE = 1e-3      # rad: every target of DEMOS is this close to a w
 VELOCITY_RUN_S = 1.0
 RECONNECT_WAIT_S = 15.0     # a node retries a lost drive with back-off (reconnect_period_s x 1..8)
 VELOCITY_COMMAND_PERIOD_S = 0.1     # 10 Hz, well inside command_timeout_s (0.5 s in config/)
+# The two-axis trajectory of every bus: (time_from_start [s], first joint, second joint) [rad],
+# from the last target 0.0; within every vendor's max_velocity and max_acceleration.
+TRAJECTORY = ((1.5, 1.5, 0.5), (3.0, 0.5, 2.0), (4.5, 0.0, 0.0))
 LOG_LINES_SHOWN = 14
 
 
@@ -121,6 +126,8 @@ class Demo:
         self.console = Console(self)
         # per drive label ('xplus_mt_node/axis1'): status history, commands, phases
         self.drives: dict[str, dict] = {}
+        # per vendor: the two drive labels, the trajectory's start time and its end
+        self.trajectories: dict[str, dict] = {}
 
     # ------------------------------------------------------------------------- bookkeeping
     def say(self, text: str) -> None:
@@ -184,7 +191,7 @@ class Demo:
     def start(self, vendor: str, spec: dict) -> tuple[str, list[str]]:
         port = str(free_port()) if spec.get('link') != 'path' else str(self.log_dir / vendor)
         if spec.get('broker'):
-            broker = self.proc([executable('stepper_drivers', 'socketcand_broker'), '--port',
+            broker = self.proc([executable('stepper_sim', 'socketcand_broker'), '--port',
                                 port], f'{vendor}_broker')
             broker.wait_line('listening', 10.0)
         sim = self.proc([executable('stepper_sim', spec['sim']), '--ros-args', '--params-file',
@@ -241,7 +248,8 @@ class Demo:
         self.check(resp.success, f'{label} {name}: {resp.message}')
         return resp
 
-    def run_drive(self, label: str, spec: dict) -> None:
+    def run_drive(self, label: str, spec: dict, barrier: threading.Barrier | None = None,
+                  pair: list[str] | None = None) -> None:
         self.say(f'[{label}] enable')
         if not self.service(label, SetBool, 'enable', SetBool.Request(data=True)):
             return
@@ -259,6 +267,11 @@ class Demo:
             if st is not None:
                 self.check(abs(st.position - target) < POSITION_TOLERANCE and not st.fault,
                            f'{label} at {st.position:.4f}, expected {target}')
+        if barrier is not None:
+            self.sync(barrier, label)           # every drive of the bus is done with its moves
+            if pair and label == pair[0]:
+                self.run_trajectory(spec['vendor'], pair)
+            self.sync(barrier, label)
         v = spec['velocity']
         self.say(f'[{label}] velocity {v} rad/s for {VELOCITY_RUN_S:g} s, then no more '
                  'commands: the node watchdog stops it')
@@ -279,9 +292,12 @@ class Demo:
         t = time.monotonic()
         try:
             ns, drives = self.start(vendor, spec)
-            threads = [threading.Thread(target=self.guard, args=(self.run_drive, f'{ns[1:]}/{d}',
-                                                                 spec), daemon=True)
-                       for d in drives]
+            labels = [f'{ns[1:]}/{d}' for d in drives]
+            barrier = threading.Barrier(len(labels))
+            spec = dict(spec, vendor=vendor)
+            threads = [threading.Thread(target=self.guard, args=(
+                self.run_drive, label, spec, barrier, labels[:2]), daemon=True)
+                for label in labels]
             for th in threads:
                 th.start()
             for th in threads:
@@ -289,6 +305,63 @@ class Demo:
         except (AssertionError, FileNotFoundError) as e:
             self.check(False, f'{vendor}: {e}')
         self.say(f'[{vendor}] done in {time.monotonic() - t:.1f} s')
+
+    def sync(self, barrier: threading.Barrier, label: str) -> None:
+        try:
+            barrier.wait(max(self.deadline - time.monotonic(), 0.1))
+        except threading.BrokenBarrierError:
+            self.check(False, f'{label}: the other drives of the bus did not get there')
+            raise
+
+    def run_trajectory(self, vendor: str, labels: list[str]) -> None:
+        """One two-axis trajectory through the node's follow_joint_trajectory action."""
+        from builtin_interfaces.msg import Duration
+        from rclpy.action import ActionClient
+        from stepper_drivers_msgs.action import FollowJointTrajectory
+        from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+        joints = [self.latest(label)[0].joint_name for label in labels]
+        node = labels[0].split('/')[0]
+        msg = JointTrajectory(joint_names=joints)
+        for t, a, b in TRAJECTORY:
+            msg.points.append(JointTrajectoryPoint(positions=[a, b], time_from_start=Duration(
+                sec=int(t), nanosec=int(round((t - int(t)) * 1e9)))))
+        self.say(f'[{vendor}] two-axis trajectory {joints}: '
+                 + ', '.join(f'({a:+.1f}, {b:+.1f}) at {t:g} s' for t, a, b in TRAJECTORY))
+        client = ActionClient(self.ros.node, FollowJointTrajectory,
+                              f'/{node}/follow_joint_trajectory')
+        try:
+            if not self.check(client.wait_for_server(timeout_sec=10),
+                              f'{vendor}: no follow_joint_trajectory'):
+                return
+            start = time.monotonic()
+            goal = self.ros.in_spin(client.send_goal_async,
+                                    FollowJointTrajectory.Goal(trajectory=msg))
+            handle = self._future(goal, 10.0)
+            if not self.check(handle is not None and handle.accepted,
+                              f'{vendor}: trajectory goal not accepted'):
+                return
+            with self.lock:
+                self.trajectories[vendor] = dict(labels=labels, start=start, end=None)
+            result = self._future(self.ros.in_spin(handle.get_result_async),
+                                  TRAJECTORY[-1][0] + 15.0)
+            end = time.monotonic()
+            with self.lock:
+                self.trajectories[vendor]['end'] = end
+            for label in labels:
+                self.phase(label, 'trajectory', start, end)
+            ok = result is not None and result.result.error_code == 0
+            text = result.result.error_string if result is not None else 'no result'
+            if self.check(ok, f'{vendor}: trajectory: {text}'):
+                self.say(f'[{vendor}] trajectory done: {text}')
+        finally:
+            # in the spin thread: destroyed from another one while the executor waits on it,
+            # rclpy fails the wait set ('action client pointer is invalid') and stops spinning
+            self.ros.in_spin(client.destroy)
+
+    def _future(self, fut, timeout_s: float):
+        done = threading.Event()
+        fut.add_done_callback(lambda _f: done.set())
+        return fut.result() if done.wait(timeout_s) else None
 
     def guard(self, fn, *args) -> None:
         try:
@@ -319,6 +392,53 @@ class Demo:
 
 
 # ---------------------------------------------------------------------------------- the plot
+PHASES = {'home': ('tab:gray', 'homing'),
+          'trajectory': ('tab:green', 'two-axis trajectory'),
+          'velocity': ('tab:orange', 'velocity run, watchdog stop')}
+
+
+def plot_paths(demo: Demo, path: pathlib.Path) -> None:
+    """Each bus's two-axis trajectory: the path of the two joints, actual (from the status of
+    both drives, the second one interpolated at the first one's times) against commanded (the
+    straight segments between the points, which both axes start and end together)."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    with demo.lock:
+        runs = {v: dict(r) for v, r in demo.trajectories.items() if r.get('end')}
+    if not runs:
+        raise RuntimeError('no trajectory ran')
+    fig, axes = plt.subplots(1, len(runs), figsize=(4.2 * len(runs), 4.0), squeeze=False)
+    for ax, (vendor, run) in zip(axes[0], sorted(runs.items())):
+        with demo.lock:
+            series = [[(t, m.position) for t, m in demo.drives[label]['status']
+                       if run['start'] <= t <= run['end']] for label in run['labels']]
+            estimated = any(m.position_estimated for label in run['labels']
+                            for t, m in demo.drives[label]['status']
+                            if run['start'] <= t <= run['end'])
+            joints = [demo.drives[label]['status'][-1][1].joint_name for label in run['labels']]
+        (t1, x), (t2, y) = [tuple(zip(*s)) if s else ((), ()) for s in series]
+        ax.plot([0.0] + [a for _t, a, _b in TRAJECTORY], [0.0] + [b for _t, _a, b in TRAJECTORY],
+                '--o', color='tab:red', lw=1.2, ms=4, label='commanded (points)')
+        if t1 and t2:
+            ax.plot(x, np.interp(t1, t2, y), '-', color='tab:blue', lw=1.4, label='actual')
+        # X-MIND K: no position while it moves (§3), the node estimates it between polls
+        ax.set_title(vendor + (' (positions estimated while moving)' if estimated else ''),
+                     fontsize=9)
+        ax.set_xlabel(f'{joints[0]} [rad]', fontsize=8)
+        ax.set_ylabel(f'{joints[1]} [rad]', fontsize=8)
+        ax.tick_params(labelsize=7)
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.suptitle('two-axis trajectories: actual path against the commanded one', fontsize=11)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
 def plot(demo: Demo, path: pathlib.Path) -> None:
     """Commanded (dashed steps) and actual (solid) position of every drive over time."""
     import matplotlib
@@ -343,8 +463,7 @@ def plot(demo: Demo, path: pathlib.Path) -> None:
             ax.step(ct, cp, where='post', ls='--', color='tab:red', lw=1.2,
                     label='commanded position')
         for name, start, end in d['phases']:
-            color = 'tab:gray' if name == 'home' else 'tab:orange'
-            text = 'homing' if name == 'home' else 'velocity run, watchdog stop'
+            color, text = PHASES[name]
             ax.axvspan(start - demo.t0, end - demo.t0, color=color, alpha=0.18, label=text)
         ax.set_title(f"{d['vendor']}: {label} ({joint})", fontsize=9)
         ax.set_ylabel('position [rad]', fontsize=8)
@@ -405,9 +524,12 @@ def main() -> int:
             p.kill()
         ros.close()
     plot_path = pathlib.Path(args.plot)
+    paths_path = plot_path.with_name(plot_path.stem + '_paths' + plot_path.suffix)
     try:
         plot(demo, plot_path)
         print(f'plot of commanded vs actual position: {plot_path}', flush=True)
+        plot_paths(demo, paths_path)
+        print(f'plot of the two-axis paths: {paths_path}', flush=True)
     except Exception as e:  # noqa: BLE001 - the drives' result stands without the plot
         demo.failures.append(f'plot: {type(e).__name__}: {e}')
     took = time.monotonic() - demo.t0
@@ -415,8 +537,8 @@ def main() -> int:
         print(f'demo FAILED after {took:.0f} s ({len(demo.failures)}): '
               + '; '.join(demo.failures) + f'\nprocess logs: {log_dir}', file=sys.stderr)
         return 1
-    print(f'demo OK in {took:.0f} s: every drive enabled, homed, moved and stopped by its '
-          f'watchdog. Process logs: {log_dir}')
+    print(f'demo OK in {took:.0f} s: every drive enabled, homed, moved, every bus followed a '
+          f'two-axis trajectory, every drive stopped by its watchdog. Process logs: {log_dir}')
     return 0
 
 

@@ -1,5 +1,6 @@
-"""Test harness: the project's own process and ROS client helpers (see stepper_drivers.tools),
-and `DriveBench`: a vendor's simulator and node processes, as every end-to-end test uses them.
+"""Test harness: the project's own process and ROS client helpers (stepper_sim.harness,
+stepper_drivers.cli.ros_client), and `DriveBench`: a vendor's simulator and node processes, as
+every end-to-end test uses them.
 
 ROS message packages are imported where used, so this module imports without them.
 """
@@ -8,9 +9,9 @@ import signal
 import threading
 import time
 
-from stepper_drivers.tools.client import RosClient  # noqa: F401
-from stepper_drivers.tools.processes import (CONFIG, INSTALL, ROOT, Proc, executable,  # noqa: F401
-                                             free_port, wait_for)
+from stepper_drivers.cli.ros_client import RosClient  # noqa: F401
+from stepper_sim.harness import (CONFIG, INSTALL, ROOT, Proc, executable,  # noqa: F401
+                                 free_port, wait_for)
 
 
 class Procs(list):
@@ -47,6 +48,7 @@ class DriveBench:
     keep_status = False                       # keep every DriveStatus in ros.history
     connect_timeout_s = 30.0                  # process starts take seconds on a busy machine
     wait_connected = True                     # the constructor returns once all are connected
+    node_executable = ''                      # '' = <vendor>_node (the lifecycle one: ...)
 
     def __init__(self, procs, ros, node_args=()):
         from diagnostic_msgs.msg import DiagnosticArray
@@ -58,7 +60,8 @@ class DriveBench:
         self.sim = None
         self.start_sim(*self.first_sim_args)
         self.node = procs.start('node', [
-            executable('stepper_drivers', f'{self.vendor}_node'), '--ros-args',
+            executable('stepper_drivers', self.node_executable or f'{self.vendor}_node'),
+            '--ros-args',
             '--params-file', str(CONFIG / f'{self.vendor}.yaml'), *self.link_args(),
             '-p', 'reconnect_period_s:=0.2', *self.node_extra_args, *node_args])
         ros.subscribe(JointState, '/joint_states', keep=True)

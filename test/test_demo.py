@@ -42,6 +42,8 @@ def test_demo_moves_every_drive_plots_and_cleans_up(tmp_path):
         assert f'[{vendor}] simulator and node up' in r.stdout
     assert r.stdout.count('stopped by the watchdog') == 9          # 2 + 2 + 3 + 2 drives
     assert 'DRIVE' in r.stdout and 'vector_step_node/axis2' in r.stdout   # the status table
-    data = plot.read_bytes()
-    assert data[:8] == b'\x89PNG\r\n\x1a\n' and len(data) > 20_000
+    assert r.stdout.count('trajectory done: every joint reached its goal') == 4   # per bus
+    for png in (plot, tmp_path / 'positions_paths.png'):
+        data = png.read_bytes()
+        assert data[:8] == b'\x89PNG\r\n\x1a\n' and len(data) > 20_000
     assert processes_with(marker) == []

@@ -111,7 +111,7 @@ def check_references(path: pathlib.Path, tree: ast.AST) -> None:
         pkg = const(c.args[0])
         assert (ROOT / 'src' / pkg / 'package.xml').exists(), f'{path.name}: no package {pkg}'
         assert (INSTALL / pkg).is_dir(), f'{pkg} not built (run scripts/bootstrap.sh)'
-    for c in calls(tree, 'Node'):
+    for c in calls(tree, 'Node') + calls(tree, 'LifecycleNode'):
         pkg, exe = const(kw(c, 'package')), const(kw(c, 'executable'))
         assert exe in EXECUTABLES[pkg], f'{path.name}: {pkg} has no executable {exe}'
         assert (INSTALL / pkg / 'lib' / pkg / exe).exists(), f'{exe} not installed'
@@ -142,7 +142,7 @@ def test_node_names_match_their_params_files(launch):
     path, tree = launch
     defaults = {const(c.args[0]): yaml_file(kw(c, 'default_value'))
                 for c in calls(tree, 'DeclareLaunchArgument')}
-    for c in calls(tree, 'Node'):
+    for c in calls(tree, 'Node') + calls(tree, 'LifecycleNode'):
         name = const(kw(c, 'name'))
         for p in kw(c, 'parameters').elts:
             yaml_name = yaml_file(p)
@@ -160,7 +160,18 @@ def test_vendor_launch_starts_its_simulator_only_with_sim_true(vendor):
     assert const(kw(args['sim'], 'default_value')) == 'false'
     started = {const(kw(c, 'executable')): c for c in calls(tree, 'Node')}
     assert f'{vendor}_node' in started and f'{vendor}_sim' in started
-    assert kw(started[f'{vendor}_node'], 'condition') is None
+    # the plain node unless lifecycle:=true, then the managed one under the same node name
+    assert const(kw(args['lifecycle'], 'default_value')) == 'false'
+    assert ast.unparse(kw(started[f'{vendor}_node'], 'condition')) == \
+        "UnlessCondition(LaunchConfiguration('lifecycle'))"
+    (managed,) = calls(tree, 'LifecycleNode')
+    assert const(kw(managed, 'executable')) == f'{vendor}_lifecycle_node'
+    assert const(kw(managed, 'name')) == f'{vendor}_node'
+    assert const(kw(managed, 'namespace')) == ''      # launch_ros requires it for LifecycleNode
+    assert ast.unparse(kw(managed, 'condition')) == \
+        "IfCondition(LaunchConfiguration('lifecycle'))"
+    assert ast.unparse(kw(managed, 'parameters')) == \
+        ast.unparse(kw(started[f'{vendor}_node'], 'parameters'))
     for exe, c in started.items():
         if exe.endswith('_sim'):
             cond = ast.unparse(kw(c, 'condition'))
@@ -396,6 +407,13 @@ class Node(Action):
                             'parameters': [run.perform(p) for p in self.parameters]})
 
 
+class LifecycleNode(Node):
+    # launch_ros.actions.LifecycleNode (Jazzy): name and namespace are required keywords
+    def __init__(self, *, name, namespace, **options):
+        super().__init__(name=name, **options)
+        self.namespace = namespace
+
+
 class ExecuteProcess(Action):
     def __init__(self, *, cmd, **options):
         super().__init__(**options)
@@ -430,7 +448,7 @@ STAND_INS = {
     'launch.launch_description_sources': _module('launch.launch_description_sources',
                                                  PythonLaunchDescriptionSource),
     'launch_ros': _module('launch_ros'),
-    'launch_ros.actions': _module('launch_ros.actions', Node),
+    'launch_ros.actions': _module('launch_ros.actions', Node, LifecycleNode),
     'ament_index_python': _module('ament_index_python'),
     'ament_index_python.packages': _module('ament_index_python.packages',
                                            get_package_share_directory, get_package_prefix),
@@ -497,6 +515,9 @@ def test_a_vendor_launch_file_alone_starts_its_node_and_with_sim_true_its_simula
     assert ros2_launch(f'{vendor}.launch.py', sim='true') == {**sim, **node}
     assert ros2_launch(f'{vendor}.launch.py', sim='false', params_file='/cell/line1.yaml') == \
         {f'{vendor}_node': ['/cell/line1.yaml']}
+    # lifecycle:=true: the managed node instead, named like the plain one, same params file
+    assert ros2_launch(f'{vendor}.launch.py', lifecycle='true') == \
+        {f'{vendor}_lifecycle_node': [f'config/{vendor}.yaml']}
 
 
 # demo.launch.py before issue 10: the vendor files included one after the other, unscoped.

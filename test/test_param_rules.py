@@ -147,14 +147,18 @@ def test_the_rules_of_a_config_file_are_met_and_pure(ros, key):
     assert values == before
 
 
-def test_vendor_modules_and_their_rules_need_no_rclpy():
+def test_vendor_modules_and_their_rules_need_no_rclpy_nor_ament():
     code = ('import sys\n'
             'from stepper_drivers import vendor_table, param_rules\n'
             'import importlib\n'
             'for row in vendor_table.ROWS:\n'
             '    m = importlib.import_module(row.module)\n'
             '    assert callable(m.validate), row.key\n'
-            "assert 'rclpy' not in sys.modules, 'rclpy imported'\n")
+            "assert 'rclpy' not in sys.modules, 'rclpy imported'\n"
+            "assert 'ament_index_python' not in sys.modules, 'ament_index_python imported'\n"
+            'from stepper_drivers.vendors import vector_step_map\n'
+            'vector_step_map.eds_path()\n'
+            "assert 'ament_index_python' not in sys.modules, 'eds_path imported ament'\n")
     subprocess.run([sys.executable, '-c', code], check=True, timeout=60)
 
 

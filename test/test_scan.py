@@ -13,7 +13,7 @@ import pytest
 from rosharness import CONFIG, executable, free_port
 from std_msgs.msg import Float64
 from std_srvs.srv import SetBool
-from stepper_drivers.protocol.socketcand_broker import SocketcandBroker
+from stepper_sim.socketcand_broker import SocketcandBroker
 from stepper_drivers_msgs.msg import DriveStatus
 import yaml
 

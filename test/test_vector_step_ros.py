@@ -16,7 +16,7 @@ import pytest
 from rosharness import (DriveBench, Procs, RosClient, Track, bad_parameter_output, wait_for,
                         watchdog_bound_s)
 from std_srvs.srv import SetBool
-from stepper_drivers.protocol.socketcand_broker import SocketcandBroker
+from stepper_sim.socketcand_broker import SocketcandBroker
 from stepper_drivers_msgs.srv import ReadRegister, WriteRegister
 
 STEPS_PER_RAD = 3200 / (2 * math.pi)

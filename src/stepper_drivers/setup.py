@@ -9,9 +9,9 @@ HERE = os.path.dirname(os.path.realpath(__file__))
 # The vendor table, read as a file: setup.py imports neither the package nor rclpy.
 ROWS = runpy.run_path(os.path.join(HERE, 'stepper_drivers', 'vendor_table.py'))['ROWS']
 
-# One console script per vendor node (<key>_node), and the tools:
+# Two console scripts per vendor (<key>_node, <key>_lifecycle_node), and stepperctl:
 # '<exe> = stepper_drivers.entry_points:<function>'.
-NODES = [row.node for row in ROWS] + ['socketcand_broker', 'stepperctl']
+NODES = [n for row in ROWS for n in (row.node, row.lifecycle_node)] + ['stepperctl']
 
 setup(
     name=package_name,

@@ -10,8 +10,10 @@ HERE = os.path.dirname(os.path.realpath(__file__))
 ROWS = runpy.run_path(os.path.join(HERE, '..', 'stepper_drivers', 'stepper_drivers',
                                    'vendor_table.py'))['ROWS']
 
-# One console script per simulator: '<key>_sim = <row.simulator>'.
+# One console script per simulator: '<key>_sim = <row.simulator>', and one per helper a
+# simulator needs (row.sim_helpers, e.g. the CAN broker): '<name> = stepper_sim.<name>:main'.
 SIMS = {row.sim: row.simulator for row in ROWS}
+SIMS.update({h: f'stepper_sim.{h}:main' for row in ROWS for h in row.sim_helpers})
 
 setup(
     name=package_name,

@@ -1,12 +1,14 @@
-"""Executables: one function per vendor node, <key>_node, made from the vendor table (console
-scripts in setup.py). Vendor modules are imported only when used."""
+"""Executables: two functions per vendor, made from the vendor table (console scripts in
+setup.py): <key>_node, the plain node, and <key>_lifecycle_node, the managed variant
+(lifecycle_node.py) under the same node name. Vendor modules are imported only when used."""
 
 from __future__ import annotations
 
 import importlib
+import os
 import sys
 
-from .vendor_table import BY_NODE, ROWS
+from .vendor_table import BY_LIFECYCLE_NODE, BY_NODE, ROWS
 
 
 def run(exe: str, argv: list[str] | None = None) -> int:
@@ -15,7 +17,13 @@ def run(exe: str, argv: list[str] | None = None) -> int:
     from .node import DriveNode, spin_node
     from .params import ParameterError, declare_all, non_ros_args
 
-    module = importlib.import_module(BY_NODE[exe].module)
+    row = BY_NODE.get(exe) or BY_LIFECYCLE_NODE[exe]
+    managed = exe == row.lifecycle_node
+    if managed:
+        from .lifecycle_node import ManagedDriveNode as node_class
+    else:
+        node_class = DriveNode
+    module = importlib.import_module(row.module)
     vendor = module.VENDOR
     argv = sys.argv if argv is None else argv
     try:
@@ -29,13 +37,29 @@ def run(exe: str, argv: list[str] | None = None) -> int:
         return 2
     rclpy.init(args=argv)
     try:
-        node = DriveNode(vendor, exe, lambda n: declare_all(n, vendor, argv, module.validate))
+        node = node_class(vendor, row.node, lambda n: share_files(
+            declare_all(n, vendor, argv, module.validate), getattr(module, 'SHARE_FILES', {})))
     except ParameterError as e:
         print(f'{exe}: {e}', file=sys.stderr, flush=True)
         rclpy.try_shutdown()
         return 2
     spin_node(node)
     return 0
+
+
+def share_files(cfg, files: dict[str, str]):
+    """Fill each bus parameter of `files` left '' with its file in the installed share directory
+    of stepper_drivers, found through ROS's package index (a vendor module imports no ROS: it
+    names the file relative to that directory). Not installed: left '' (the source tree's)."""
+    from ament_index_python.packages import PackageNotFoundError, get_package_share_directory
+    for key, relative in files.items():
+        if cfg.params.get(key) == '':
+            try:
+                cfg.params[key] = os.path.join(get_package_share_directory('stepper_drivers'),
+                                               relative)
+            except PackageNotFoundError:
+                pass
+    return cfg
 
 
 def _executable(exe: str):
@@ -48,11 +72,7 @@ def _executable(exe: str):
 
 for _row in ROWS:
     globals()[_row.node] = _executable(_row.node)     # xplus_mt_node(), rd4_node(), ...
-
-
-def socketcand_broker() -> None:
-    from .protocol.socketcand_broker import main
-    sys.exit(main())
+    globals()[_row.lifecycle_node] = _executable(_row.lifecycle_node)
 
 
 def stepperctl() -> None:

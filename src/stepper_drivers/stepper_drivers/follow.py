@@ -29,7 +29,7 @@ from typing import Callable
 
 from .drive import Drive, Motion, is_steps
 from .supervisor import COMMAND, URGENT, BusSupervisor
-from .trajectory import JointLimits, Segment, Trajectory, TrajectoryError, plan, trapezoid
+from .trajectory import JointLimits, Segment, Trajectory, TrajectoryError, plan
 
 logger = logging.getLogger(__name__)
 
@@ -189,21 +189,32 @@ class Run:
         clock = self.follower.clock
 
         def job():
-            left = end_t - clock()
-            lim = axis.limits
-            profile = trapezoid(move.target_steps - from_steps, left, lim.max_velocity_steps_s,
-                                lim.max_acceleration_steps_s2, lim.start_stop_steps_s) \
-                if left > 0 else 'late'
-            if isinstance(profile, str):
-                profile = (move.velocity_steps_s, move.acceleration_steps_s2)
-            v, a = profile
+            v, a = self._retimed(axis, move, from_steps, end_t - clock())
             if math.isinf(a):                    # start-stop: the drive ignores the ramp
-                a = lim.max_acceleration_steps_s2
+                a = axis.limits.max_acceleration_steps_s2
             result = axis.drive.move_to(int(round(move.target_steps)), Motion(v, a, a))
             if is_steps(result):
                 result = yield from result
             return result
         return job
+
+    @staticmethod
+    def _retimed(axis: Axis, move, from_steps: float, left_s: float) -> tuple[float, float]:
+        """The segment's profile for the time really left, with the planned ramp time (so the
+        axes keep their proportions); the planned profile when that would break a limit."""
+        planned = (move.velocity_steps_s, move.acceleration_steps_s2)
+        d = abs(move.target_steps - from_steps)
+        ramp_s = 0.0 if math.isinf(planned[1]) else planned[0] / planned[1]
+        if left_s <= 2 * ramp_s or left_s <= 0:
+            return planned
+        v = d / (left_s - ramp_s)
+        a = v / ramp_s if ramp_s > 0 else math.inf
+        lim = axis.limits
+        if v > lim.max_velocity_steps_s or (ramp_s > 0 and a > lim.max_acceleration_steps_s2):
+            return planned
+        if ramp_s == 0 and v > lim.start_stop_steps_s:
+            return planned          # faster would make the drive ramp: later, not earlier
+        return v, a
 
     def _wait_until(self, t: float) -> Outcome | None:
         clock = self.follower.clock

@@ -40,6 +40,7 @@ from stepper_drivers_msgs.srv import ReadRegister, WriteRegister
 from .drive import (Drive, DriveError, DriveState, Homing, HomingState, Motion, RefusedError,
                     Vendor)
 from .params import BusConfig, DriveConfig, ParameterError, current_values
+from .node_trajectory import TrajectoryInterface
 from .supervisor import (COMMAND, MAINTENANCE, STREAM, URGENT, BusSupervisor, Cancelled, Slot,
                          Superseded)
 
@@ -111,27 +112,60 @@ class DriveHandle:
 
 
 class DriveNode(Node):
-    def __init__(self, vendor: Vendor, node_name: str, config_loader: Callable[[Node], BusConfig]):
+    """The plain node: built, connected and publishing from the start. With `managed` (the
+    lifecycle variant, lifecycle_node.py) the buses and interfaces wait for on_configure."""
+
+    def __init__(self, vendor: Vendor, node_name: str, config_loader: Callable[[Node], BusConfig],
+                 managed: bool = False):
         super().__init__(node_name)
         self.vendor = vendor
         self.log = self.get_logger()
         self.cfg = config_loader(self)                       # raises ParameterError
         self.bus_params = self.cfg.params
+        self.managed = managed
+        # Commands are taken (plain node: always; managed node: while active). A stop is
+        # taken in every state: it never moves anything.
+        self.accepting = not managed
         self.handles: dict[str, DriveHandle] = {}
         self.supervisors: list[BusSupervisor] = []
+        self.by_joint: dict[str, DriveHandle] = {}
+        self._interfaces = False
         self._identities: dict[tuple[str, str], str] = {}    # (key, value) -> drive
         self._identity_lock = threading.Lock()
         self._js_lock = threading.Lock()       # joint_states: the owner threads take turns
         self._js_cycled: set[int] = set()
         self._js_due = 0.0
+        self.add_on_set_parameters_callback(self.on_set_parameters)
+        self.add_post_set_parameters_callback(self.after_set_parameters)
+        if not managed:
+            self.build()
+
+    def build(self) -> None:
+        """Buses, drives and their owners (not started), and, the first time, the ROS
+        interfaces. Nothing is opened or written here: start() does that."""
+        self._identities.clear()
+        self.supervisors = []
         self._build_buses()
         self.by_joint = {h.cfg.joint_name: h for h in self.handles.values()}
+        if not self._interfaces:
+            self._make_interfaces()
+            self._interfaces = True
+        for sup in self.supervisors:
+            names = [n for n in self.handles if self.handles[n].sup is sup]
+            self.log.info(f'{self.vendor.name} node on {sup.bus.description}: drives '
+                          + ', '.join(f'{n} ({self.handles[n].cfg.joint_name})' for n in names))
 
+    def _publisher(self, msg_type, topic: str, qos):
+        if self.managed:      # publishes only while active (LifecycleNodeMixin manages it)
+            return self.create_lifecycle_publisher(msg_type, topic, qos)
+        return self.create_publisher(msg_type, topic, qos)
+
+    def _make_interfaces(self) -> None:
         self.cmd_group = MutuallyExclusiveCallbackGroup()    # ordered, never waits
         self.srv_group = ReentrantCallbackGroup()            # async: awaits, holds no thread
         reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
-        self.joint_pub = self.create_publisher(JointState, 'joint_states', reliable)
-        self.diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self.joint_pub = self._publisher(JointState, 'joint_states', reliable)
+        self.diag_pub = self._publisher(DiagnosticArray, '/diagnostics', 10)
         self.create_subscription(JointState, 'joint_command', self.on_joint_command, 10,
                                  callback_group=self.cmd_group)
         self.status_pubs = {}
@@ -139,12 +173,7 @@ class DriveNode(Node):
             self._make_drive_interfaces(h)
         self.create_timer(1.0 / self.bus_params['diagnostics_rate_hz'], self.publish_diagnostics,
                           callback_group=self.cmd_group)
-        self.add_on_set_parameters_callback(self.on_set_parameters)
-        self.add_post_set_parameters_callback(self.after_set_parameters)
-        for sup in self.supervisors:
-            names = [n for n in self.handles if self.handles[n].sup is sup]
-            self.log.info(f'{vendor.name} node on {sup.bus.description}: drives '
-                          + ', '.join(f'{n} ({self.handles[n].cfg.joint_name})' for n in names))
+        self.trajectories = TrajectoryInterface(self)
 
     # ----------------------------------------------------------------------------------- set-up
     def _drive_bus_params(self, dcfg: DriveConfig) -> dict[str, Any]:
@@ -177,12 +206,17 @@ class DriveNode(Node):
                     drive = self.vendor.make_drive(bus, dcfg.name, drive_params)
                 except ValueError as e:
                     raise ParameterError(str(e)) from None
-                self.handles[dcfg.name] = DriveHandle(self, dcfg, drive)
+                if dcfg.name in self.handles:      # built again (managed: configure again)
+                    self.handles[dcfg.name].drive = drive
+                else:
+                    self.handles[dcfg.name] = DriveHandle(self, dcfg, drive)
                 drives[dcfg.name] = drive
             sup = BusSupervisor(
                 bus, drives, self.bus_params, on_cycle=self.publish_states,
                 on_connected=self._check_identity, on_event=self._on_event,
-                auto_enable=[d.name for d in dcfgs if d.params.get('auto_enable')],
+                # managed: enabled at on_activate, not when the bus is configured
+                auto_enable=[] if self.managed else
+                [d.name for d in dcfgs if d.params.get('auto_enable')],
                 name=bus.description or 'bus')
             for name in drives:
                 self.handles[name].sup = sup
@@ -262,6 +296,9 @@ class DriveNode(Node):
         return [f'drives.<name>.{n}' for n in names] or ['the drive addresses']
 
     # ------------------------------------------------------------------------------ polling
+    def lifecycle_state_label(self) -> str:
+        return 'active'
+
     def start(self) -> None:
         for sup in self.supervisors:
             sup.start()
@@ -407,7 +444,11 @@ class DriveNode(Node):
         h.commands_refused += 1
         raise CommandRefused(why)
 
-    def _check_link(self, h: DriveHandle, what: str) -> None:
+    def _check_link(self, h: DriveHandle, what: str, safe: bool = False) -> None:
+        """`safe`: a stop, a disable or a read, taken in every lifecycle state."""
+        if not self.accepting and not safe:
+            self.refuse(h, f'{what}: the node is not active (lifecycle state '
+                           f'{self.lifecycle_state_label()}); activate it first')
         if h.slot.not_driven:
             self.refuse(h, f'{what}: drive is not driven: {h.slot.not_driven}')
         if not h.connected:
@@ -544,7 +585,7 @@ class DriveNode(Node):
     # ------------------------------------------------------------------------------- services
     async def srv_enable(self, h: DriveHandle, req, resp):
         async def work():
-            self._check_link(h, 'enable' if req.data else 'disable')
+            self._check_link(h, 'enable' if req.data else 'disable', safe=not req.data)
             if req.data:
                 await self._run_job(h, COMMAND, h.drive.enable, 'enable', motion=False)
             else:
@@ -556,7 +597,7 @@ class DriveNode(Node):
 
     async def srv_stop(self, h: DriveHandle, req, resp):
         async def work():
-            self._check_link(h, 'stop')
+            self._check_link(h, 'stop', safe=True)
             await self._run_job(h, URGENT, h.drive.stop, 'stop', disarms=True)
         return await self._respond(h, resp, work,
                                    lambda _: f'{h.name}: stopping with the profile deceleration')
@@ -630,7 +671,7 @@ class DriveNode(Node):
         resp.value, resp.text = 0, ''
 
         async def work():
-            self._check_link(h, 'read_register')
+            self._check_link(h, 'read_register', safe=True)
             value = await self._run_job(
                 h, MAINTENANCE, lambda: h.drive.read_register(req.address, req.data_type),
                 f'read_register {req.address}', motion=False)

@@ -9,10 +9,10 @@ in the message hold their position.
 
 Following by synchronized point-to-point segments (every drive: RD4, X-MIND K, and X-PLUS MT,
 whose change-set-immediately takes each set point at once): for each segment, every moving axis
-gets a trapezoidal profile with the joint's largest acceleration and the velocity that makes it
-arrive exactly at the waypoint's time, so all axes start together and arrive together. A segment
-that needs more than max_velocity or max_acceleration is refused before anything moves, naming
-the joint and the limit.
+gets a trapezoidal profile with one common ramp time, scaled by its distance, that makes it arrive
+exactly at the waypoint's time: all axes start together, keep their proportions (a straight path
+between the points) and arrive together. A segment that needs more than a joint's max_velocity
+or max_acceleration is refused before anything moves, naming the joint and the limit.
 """
 
 from __future__ import annotations
@@ -107,29 +107,57 @@ def build(joints: Sequence[str], times_s: Sequence[float],
 def trapezoid(distance_steps: float, duration_s: float, max_velocity_steps_s: float,
               max_acceleration_steps_s2: float, start_stop_steps_s: float = 0.0
               ) -> tuple[float, float] | str:
-    """(velocity, acceleration) of a symmetric trapezoid covering `distance_steps` in exactly
-    `duration_s` with the largest acceleration; or the reason it cannot, as text. An
-    acceleration of inf: the drive runs the move start-stop at d / T (no ramps).
+    """(velocity, acceleration) of one axis's symmetric trapezoid covering `distance_steps` in
+    exactly `duration_s`, with the shortest ramps its max acceleration allows; or the reason it
+    cannot, as text. An acceleration of inf: start-stop at d / T (no ramps)."""
+    profiles = segment_profiles({'': distance_steps}, duration_s, {'': JointLimits(
+        -math.inf, math.inf, max_velocity_steps_s, max_acceleration_steps_s2,
+        start_stop_steps_s=start_stop_steps_s)})
+    return profiles.get('', (0.0, max_acceleration_steps_s2)) if isinstance(profiles, dict) \
+        else profiles.split(': ', 1)[1]
 
-    With acceleration a and cruise velocity v: d = v * (T - v / a), so
-    v = (a T - sqrt(a^2 T^2 - 4 a d)) / 2, real when a T^2 >= 4 d.
+
+def ramp_time(distance_steps: float, duration_s: float, acceleration_steps_s2: float) -> float:
+    """The shortest ramp t of a symmetric trapezoid over d in T with ramps of at most a:
+    d = a t (T - t), so t = (T - sqrt(T^2 - 4 d / a)) / 2; inf when a T^2 < 4 d."""
+    disc = duration_s ** 2 - 4 * abs(distance_steps) / acceleration_steps_s2
+    return math.inf if disc < 0 else (duration_s - math.sqrt(disc)) / 2
+
+
+def segment_profiles(distances: dict[str, float], duration_s: float,
+                     limits: dict[str, JointLimits]) -> dict[str, tuple[float, float]] | str:
+    """(velocity, acceleration) per moving joint for one segment, or the reason it cannot.
+
+    Every axis gets the same ramp time t_r (the longest any of them needs within its
+    max_acceleration): each one's profile is then the same curve scaled by its distance, so the
+    axes keep their proportions all the way and the path between two points is a straight line,
+    not a dog-leg. v_i = d_i / (T - t_r), a_i = v_i / t_r. When every axis can run start-stop
+    (X-PLUS MT at or below its start-stop velocity) there are no ramps: v_i = d_i / T.
     """
-    d = abs(distance_steps)
-    a = max_acceleration_steps_s2
-    if d == 0:
-        return 0.0, a
-    if d / duration_s <= min(start_stop_steps_s, max_velocity_steps_s):
-        return d / duration_s, math.inf
-    need_a = 4 * d / duration_s ** 2
-    if a * EDGE_MARGIN < need_a:
-        return (f'needs an acceleration of at least {need_a / EDGE_MARGIN:.4g} steps/s^2 to '
-                f'cover {d:.6g} steps in {duration_s:g} s (max_acceleration is {a:.4g} '
-                'steps/s^2)')
-    v = (a * duration_s - math.sqrt(a * a * duration_s ** 2 - 4 * a * d)) / 2
-    if v > max_velocity_steps_s:
-        return (f'needs {v:.4g} steps/s to cover {d:.6g} steps in {duration_s:g} s '
-                f'(max_velocity is {max_velocity_steps_s:.4g} steps/s)')
-    return v, a
+    moving = {j: abs(d) for j, d in distances.items() if d != 0}
+    if not moving:
+        return {}
+    T = duration_s
+    if all(d / T <= min(limits[j].start_stop_steps_s, limits[j].max_velocity_steps_s)
+           for j, d in moving.items()):
+        return {j: (d / T, math.inf) for j, d in moving.items()}
+    t_r = 0.0
+    for j, d in moving.items():
+        a = limits[j].max_acceleration_steps_s2
+        t_j = ramp_time(d, T, a * EDGE_MARGIN)
+        if math.isinf(t_j):
+            need = 4 * d / T ** 2 / EDGE_MARGIN
+            return (f'{j}: needs an acceleration of at least {need:.4g} steps/s^2 to cover '
+                    f'{d:.6g} steps in {T:g} s (max_acceleration is {a:.4g} steps/s^2)')
+        t_r = max(t_r, t_j)
+    out = {}
+    for j, d in moving.items():
+        v = d / (T - t_r)
+        if v > limits[j].max_velocity_steps_s:
+            return (f'{j}: needs {v:.4g} steps/s to cover {d:.6g} steps in {T:g} s (max_velocity '
+                    f'is {limits[j].max_velocity_steps_s:.4g} steps/s)')
+        out[j] = (v, v / t_r if t_r > 0 else math.inf)
+    return out
 
 
 def plan(traj: Trajectory, start_steps: dict[str, float], limits: dict[str, JointLimits],
@@ -144,24 +172,24 @@ def plan(traj: Trajectory, start_steps: dict[str, float], limits: dict[str, Join
     for k, point in enumerate(traj.points):
         if point.time_s <= from_s:
             continue                                  # already past: JTC drops them too
-        duration = point.time_s - t0
-        moves = []
-        for joint, target in zip(traj.joints, point.positions_steps):
+        targets = dict(zip(traj.joints, point.positions_steps))
+        for joint, target in targets.items():
             lim = limits[joint]
             if not lim.min_steps <= target <= lim.max_steps:
                 raise TrajectoryError(
                     f'{joint}: point {k} at {target / lim.steps_per_unit:g} {lim.unit} is '
                     f'outside min_position..max_position ({lim.min_steps / lim.steps_per_unit:g}'
                     f'..{lim.max_steps / lim.steps_per_unit:g} {lim.unit})')
-            profile = trapezoid(target - previous[joint], duration, lim.max_velocity_steps_s,
-                                lim.max_acceleration_steps_s2, lim.start_stop_steps_s)
-            if isinstance(profile, str):
-                raise TrajectoryError(f'{joint}: segment to point {k} ({t0:g} s to '
-                                      f'{point.time_s:g} s) {profile}')
-            if target != previous[joint]:
-                moves.append(AxisMove(joint, target, *profile))
-            previous[joint] = target
-        segments.append(Segment(t0, point.time_s, tuple(moves)))
+        profiles = segment_profiles({j: targets[j] - previous[j] for j in traj.joints},
+                                    point.time_s - t0, limits)
+        if isinstance(profiles, str):
+            joint, why = profiles.split(': ', 1)
+            raise TrajectoryError(f'{joint}: segment to point {k} ({t0:g} s to '
+                                  f'{point.time_s:g} s) {why}')
+        moves = tuple(AxisMove(j, targets[j], *profiles[j]) for j in traj.joints
+                      if j in profiles)
+        segments.append(Segment(t0, point.time_s, moves))
+        previous.update(targets)
         t0 = point.time_s
     return segments
 

@@ -3,7 +3,8 @@
 Plain data, no imports of the package (both setup.py files load this file with runpy, without
 rclpy or the vendor modules). Everything else about a vendor follows from its key by convention:
 
-    executable            <key>_node (stepper_drivers.entry_points), <key>_sim (stepper_sim)
+    executable            <key>_node and <key>_lifecycle_node (stepper_drivers.entry_points),
+                          <key>_sim (stepper_sim)
     params files          config/<key>.yaml (node named <key>_node), config/<key>_sim.yaml
     launch file           src/stepper_drivers/launch/<key>.launch.py (sim:=true adds the sim)
     driver page           docs/<key>.md
@@ -25,13 +26,20 @@ class VendorRow:
     simulator: str         # console script target of <key>_sim: 'package.module:function'
     address_param: str     # the per-drive address parameter ('node_id', 'unit_id', ...)
     link_param: str = 'port'   # the parameter the node and its simulator share (the link)
-    sim_helpers: tuple[str, ...] = ()   # other executables `<key>.launch.py sim:=true` starts
+    # other executables `<key>.launch.py sim:=true` starts: stepper_sim console scripts
+    # '<name> = stepper_sim.<name>:main' (src/stepper_sim/setup.py)
+    sim_helpers: tuple[str, ...] = ()
     scan_help: str = ''    # `stepperctl scan <key>` help; '' = no scanner (cli/scan.py)
     scan_hint: str = ''    # what to check when a scan finds nothing
 
     @property
     def node(self) -> str:
         return f'{self.key}_node'
+
+    @property
+    def lifecycle_node(self) -> str:
+        """The managed (lifecycle) variant; its node is named like the plain one."""
+        return f'{self.key}_lifecycle_node'
 
     @property
     def sim(self) -> str:
@@ -76,4 +84,5 @@ ROWS: tuple[VendorRow, ...] = (
 
 BY_KEY = {row.key: row for row in ROWS}
 BY_NODE = {row.node: row for row in ROWS}
+BY_LIFECYCLE_NODE = {row.lifecycle_node: row for row in ROWS}
 KEYS = tuple(BY_KEY)

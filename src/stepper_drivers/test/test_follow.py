@@ -9,7 +9,7 @@ import pytest
 
 from stepper_drivers.follow import REPLACED, Axis, Follower
 from stepper_drivers.supervisor import COMMAND, BusSupervisor
-from stepper_drivers.tools.processes import wait_for
+from stepper_sim.harness import wait_for
 from stepper_drivers.trajectory import JointLimits, TrajectoryError, build
 from stepper_drivers.vendors.xplus_mt import VENDOR
 from stepper_sim.xplus_mt_sim import XplusMtDriveConfig, XplusMtSim

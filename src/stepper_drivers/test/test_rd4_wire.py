@@ -16,7 +16,7 @@ import pytest
 from stepper_drivers.drive import (complete, DriveError, Homing, IdentityError, LinkError, Motion,
                                    State)
 from stepper_drivers.protocol import modbus_rtu as rtu
-from stepper_drivers.tools.processes import wait_for
+from stepper_sim.harness import wait_for
 from stepper_drivers.vendors import rd4
 from stepper_drivers.vendors import rd4_map as rm
 from stepper_sim.rd4_sim import Rd4Options, Rd4Unit, RtuLine, TICK_S

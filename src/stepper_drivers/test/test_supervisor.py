@@ -18,7 +18,7 @@ from stepper_drivers.drive import (Bus, Drive, DriveError, DriveState, IdentityE
                                    State)
 from stepper_drivers.supervisor import (COMMAND, MAINTENANCE, STREAM, URGENT, BusSupervisor,
                                         Cancelled, NotConnected, Superseded)
-from stepper_drivers.tools.processes import wait_for
+from stepper_sim.harness import wait_for
 
 TX_S = 0.01            # one transaction on the scripted line
 RATE_HZ = 20.0         # poll rate: a 50 ms period, much longer than a transaction

@@ -14,8 +14,8 @@ import can
 import pytest
 from stepper_drivers.drive import (complete, DriveError, Homing, HomingState, IdentityError,
                                    LinkError, Motion, State)
-from stepper_drivers.protocol.socketcand_broker import SocketcandBroker
-from stepper_drivers.tools.processes import wait_for as wait
+from stepper_sim.socketcand_broker import SocketcandBroker
+from stepper_sim.harness import wait_for as wait
 from stepper_drivers.vendors import vector_step as vs
 from stepper_drivers.vendors import vector_step_map as vm
 from stepper_sim.vector_step_sim import NodeConfig, SYNC_CONFIRM_S, VectorStepSim
@@ -140,7 +140,8 @@ def test_connect_configures_the_node_and_reads_state_from_pdos_only(bench):
             [vm.mapping_entry(*e) for e in entries]
     assert node._stored(vm.TPDO_COMMUNICATION + 1, 5) == 100         # TxPDO2 event timer
     assert node._stored(vm.RPDO_MAPPING + 2, 1) == vm.mapping_entry(vm.CONTROLWORD, 0, 16)
-    assert node._stored(vm.RPDO_COMMUNICATION + 3, 1) & vm.PDO_INVALID   # RxPDO4 off
+    assert node._stored(vm.RPDO_MAPPING + 3, 2) == \
+        vm.mapping_entry(vm.INTERPOLATION_DATA_RECORD, 1, 32)          # RxPDO4: IP point
     mark = bench.monitor.mark()
     for _ in range(20):
         s = snap(d)

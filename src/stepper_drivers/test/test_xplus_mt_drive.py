@@ -15,7 +15,7 @@ from stepper_drivers.drive import (DriveError, Homing, HomingState, IdentityErro
 from stepper_drivers.vendors import xplus_mt_map as xm
 from stepper_drivers.vendors.xplus_mt import VENDOR, XplusMtDrive
 from stepper_sim.xplus_mt_sim import XplusMtDriveConfig, XplusMtSim
-from stepper_drivers.tools.processes import wait_for
+from stepper_sim.harness import wait_for
 
 FAST = Motion(velocity_steps_s=100_000, acceleration_steps_s2=2_000_000,
               deceleration_steps_s2=2_000_000)

@@ -12,7 +12,7 @@ import time
 import pytest
 
 from stepper_drivers.drive import Motion, State, complete
-from stepper_drivers.tools.processes import wait_for
+from stepper_sim.harness import wait_for
 from stepper_drivers.vendors.xplus_mt import VENDOR
 from stepper_sim.xplus_mt_sim import XplusMtDriveConfig, XplusMtSim
 

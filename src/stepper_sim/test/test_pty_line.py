@@ -9,7 +9,7 @@ import select
 import time
 
 import pytest
-from stepper_drivers.tools.processes import wait_for
+from stepper_sim.harness import wait_for
 from stepper_sim.pty_line import LINK_FAULTS, PtyLine, PtyLineBackend
 
 

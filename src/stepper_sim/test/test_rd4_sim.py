@@ -12,7 +12,7 @@ import time
 
 import pytest
 import serial
-from stepper_drivers.tools.processes import wait_for
+from stepper_sim.harness import wait_for
 from stepper_drivers.vendors import rd4_map as rm
 from stepper_sim.rd4_sim import Rd4Options, Rd4Unit, RtuLine
 

@@ -15,7 +15,7 @@ import time
 
 import can
 import pytest
-from stepper_drivers.protocol.socketcand_broker import SocketcandBroker
+from stepper_sim.socketcand_broker import SocketcandBroker
 from stepper_drivers.vendors import vector_step_map as vm
 from stepper_sim.vector_step_sim import NodeConfig, SYNC_CONFIRM_S, VectorStepSim
 

@@ -10,7 +10,7 @@ import rclpy
 from pymodbus.client import ModbusTcpClient
 from rclpy.executors import SingleThreadedExecutor
 from std_msgs.msg import Float64
-from stepper_drivers.tools.processes import free_port, Proc
+from stepper_sim.harness import free_port, Proc
 from stepper_drivers_msgs.srv import InjectFault, SetInput
 
 WS = pathlib.Path(__file__).resolve().parents[3]

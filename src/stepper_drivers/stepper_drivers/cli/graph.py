@@ -14,7 +14,7 @@ import threading
 import time
 from typing import Any, Callable, Iterable
 
-from ..tools.client import RosClient
+from .ros_client import RosClient
 from .errors import EXIT_NOT_FOUND, EXIT_TIMEOUT, EXIT_USAGE, CliError
 
 logger = logging.getLogger(__name__)

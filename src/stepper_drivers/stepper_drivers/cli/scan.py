@@ -350,7 +350,7 @@ def scan_xplus_mt(args, deadline: Deadline) -> list[BusResult]:
 def scan_xmind_k(args, deadline: Deadline) -> list[BusResult]:
     from ..drive import DriveError, LinkError
     from ..protocol import xmind_k as xk
-    from ..vendors.xmind_k import XmindKBus
+    from ..protocol.xmind_k_bus import XmindKBus
 
     ids = parse_ids(args.addresses, xk.ADDRESS_MIN, xk.ADDRESS_MAX, '--addresses')
     bus = XmindKBus({'port': args.port, 'baudrate': xk.BAUDRATE, 'parity': 'N', 'stopbits': 1,

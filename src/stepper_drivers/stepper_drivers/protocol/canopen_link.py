@@ -38,7 +38,9 @@ from canopen.sdo.base import SdoVariable
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
 from ..drive import Bus, DriveError, LinkError, Steps
-from ..vendors import vector_step_map as vm
+from .cia301 import (EMCY_NO_ERROR, PDO_COB_BASES_RX, PDO_COB_BASES_TX, PDO_INVALID,
+                     RPDO_COMMUNICATION, RPDO_MAPPING, TPDO_COMMUNICATION, TPDO_MAPPING,
+                     abort_text, mapping_entry)
 
 logger = logging.getLogger(__name__)
 
@@ -47,7 +49,6 @@ logging.getLogger('can.interfaces.socketcand.socketcand').setLevel(logging.ERROR
 # canopen logs every SDO timeout ("Transfer aborted by client"); RemoteDrive reports them itself.
 logging.getLogger('canopen.sdo.client').setLevel(logging.ERROR)
 
-BITRATES = (10000, 20000, 50000, 125000, 250000, 500000, 800000, 1000000)   # Rcanbaud 0..7
 PROBE_TIMEOUT_S = 1.0
 POLL_S = 0.002                 # step of a wait on something the receive thread records
 # CiA 301 NMT: command specifiers and the states a heartbeat may report (bit 7 is reserved).
@@ -244,19 +245,23 @@ class EmcyRecord:
     register: int
     data: bytes
     time_s: float            # time.monotonic() at reception
+    text: str                # the device maker's text for the code (RemoteDrive.emcy_text)
 
-    @property
-    def text(self) -> str:
-        return vm.emcy_text(self.code, self.data[:5])
+
+def emcy_code_text(code: int, vendor_data: bytes = b'') -> str:
+    """An EMCY code without a maker's table (CiA 301 leaves the texts to the device)."""
+    return f'error code 0x{code:04X}'
 
 
 class RemoteDrive:
     """One CANopen slave on a CanBus: node object, heartbeat, boot-up latch, EMCY, SDO helpers."""
 
-    def __init__(self, bus: CanBus, node_id: int, eds: str, name: str = ''):
+    def __init__(self, bus: CanBus, node_id: int, eds: str, name: str = '',
+                 emcy_text: Callable[[int, bytes], str] = emcy_code_text):
         self.bus = bus
         self.node_id = node_id
         self.eds = eds
+        self.emcy_text = emcy_text     # (code, manufacturer bytes 3..7) -> the maker's text
         self.name = name or f'node {node_id}'
         self.node: canopen.BaseNode402 | None = None
         self._generation = -1
@@ -317,11 +322,13 @@ class RemoteDrive:
             self._cond.notify_all()
 
     def _on_emcy(self, error: EmcyError) -> None:
-        record = EmcyRecord(error.code, error.register, bytes(error.data), time.monotonic())
+        data = bytes(error.data)
+        record = EmcyRecord(error.code, error.register, data, time.monotonic(),
+                            self.emcy_text(error.code, data[:5]))
         self.bus.extra['emcy_rx'] += 1
         with self._cond:
             self.emcy_count += 1
-            if error.code != vm.EMCY_NO_ERROR:
+            if error.code != EMCY_NO_ERROR:
                 self.emcy = record
             self._cond.notify_all()
         logger.info('%s: EMCY 0x%04X %s (error register 0x%02X, data %s)', self.name,
@@ -380,7 +387,7 @@ class RemoteDrive:
         except SdoAbortedError as exc:
             if exc.code not in expected_aborts:   # an answer the caller asks for is no error
                 self.bus.errors += 1
-            raise SdoAbortError(f'{what}: {vm.abort_text(exc.code)}', exc.code) from None
+            raise SdoAbortError(f'{what}: {abort_text(exc.code)}', exc.code) from None
         except SdoCommunicationError as exc:
             self.bus.errors += 1
             raise LinkError(f'{self.name} (node-ID {self.node_id}) gave no SDO answer to {what} '
@@ -445,16 +452,16 @@ class RemoteDrive:
         pdo.clear()
         for index, sub, bits in entries:
             pdo.add_variable(index, sub, bits)
-        cob_id = (vm.PDO_COB_BASES_TX if tx else vm.PDO_COB_BASES_RX)[number - 1] + self.node_id
+        cob_id = (PDO_COB_BASES_TX if tx else PDO_COB_BASES_RX)[number - 1] + self.node_id
         pdo.cob_id, pdo.trans_type, pdo.enabled = cob_id, transmission_type, bool(entries)
-        comm = (vm.TPDO_COMMUNICATION if tx else vm.RPDO_COMMUNICATION) + number - 1
-        mapping = (vm.TPDO_MAPPING if tx else vm.RPDO_MAPPING) + number - 1
-        writes = [(comm, 1, cob_id | vm.PDO_INVALID), (comm, 2, transmission_type)]
+        comm = (TPDO_COMMUNICATION if tx else RPDO_COMMUNICATION) + number - 1
+        mapping = (TPDO_MAPPING if tx else RPDO_MAPPING) + number - 1
+        writes = [(comm, 1, cob_id | PDO_INVALID), (comm, 2, transmission_type)]
         if tx:
             pdo.event_timer, pdo.inhibit_time = event_timer_ms, inhibit_time_100us
             writes += [(comm, 3, inhibit_time_100us), (comm, 5, event_timer_ms)]
         writes.append((mapping, 0, 0))
-        writes += [(mapping, k, vm.mapping_entry(*entry)) for k, entry in enumerate(entries, 1)]
+        writes += [(mapping, k, mapping_entry(*entry)) for k, entry in enumerate(entries, 1)]
         writes.append((mapping, 0, len(entries)))
         if entries:
             writes.append((comm, 1, cob_id))

@@ -36,8 +36,8 @@ from .. import cia402, param_rules
 from ..cia402 import CW_BIT_NEW_SET_POINT, CW_ENABLE_OPERATION
 from ..drive import (Bus, Drive, DriveError, DriveState, Homing, HomingState, IdentityError,
                      LinkError, Motion, ParamSpec, State, Steps, Vendor, register_type)
-from ..protocol.canopen_link import (BITRATES, MASTER, POLL_S, CanBus, RemoteDrive, SdoAbortError,
-                                     pack, unpack)
+from ..protocol.canopen_link import (MASTER, POLL_S, CanBus, RemoteDrive, SdoAbortError, pack,
+                                     unpack)
 from . import vector_step_map as vm
 
 logger = logging.getLogger(__name__)
@@ -103,9 +103,9 @@ def parse_address(address: str) -> tuple[int, int]:
 def _check_drive(name: str, params: Mapping[str, Any], master_heartbeat_ms: int) -> None:
     """The rules of one drive's parameters (with the bus-level ones), or ValueError."""
     bitrate = int(params.get('can.bitrate', 125000))
-    if bitrate not in BITRATES:
+    if bitrate not in vm.BITRATES:
         raise ValueError(f'can.bitrate: {bitrate} is not a Vector Step bit rate (allowed: '
-                         f'{", ".join(str(b) for b in BITRATES)}; Rcanbaud codes 0..7)')
+                         f'{", ".join(str(b) for b in vm.BITRATES)}; Rcanbaud codes 0..7)')
     method = int(params.get('homing.method', 35))
     if method not in vm.HOMING_METHODS:
         raise ValueError(f'drives.{name}.homing.method: {method} is not a Vector Step homing '
@@ -184,7 +184,7 @@ class VectorStepDrive(Drive):
         self.boot_timeout_s = float(params.get('boot_timeout_s', 2.0))
         self.boot_retries = int(params.get('boot_retries', 3))
         eds = str(params.get('can.eds_file') or '') or str(vm.eds_path())
-        self.link = RemoteDrive(bus, self.node_id, eds, name)
+        self.link = RemoteDrive(bus, self.node_id, eds, name, emcy_text=vm.emcy_text)
         self.cia = cia402.Cia402Device(self._read_statusword, self._write_controlword,
                                        min_delay_s=CW_SW_DELAY_S, name=name)
         self.cia.POLL_S = POLL_S
@@ -862,8 +862,9 @@ class VectorStepDrive(Drive):
                              '(start_interpolation first; a stop or an error ends it)')
         sw = self._read_statusword()
         if cia402.decode_state(sw) != State.OPERATION_ENABLED or \
-                not sw & vm.SW_BIT_IP_ACTIVE:
-            self._ip_active = False
+                not sw & vm.SW_BIT_IP_ACTIVE or \
+                self._value(vm.MODES_OF_OPERATION_DISPLAY) != vm.MODE_INTERPOLATED:
+            self._ip_active = False     # (bit 12 is another mode's after a command of its own)
             emcy = self.link.emcy
             why = f'; EMCY 0x{emcy.code:04X}: {emcy.text}' \
                 if emcy is not None and emcy.code in vm.IP_EMCY_CODES else ''
@@ -1057,6 +1058,11 @@ def make_bus(params: Mapping[str, Any]) -> CanBus:
 
 def make_drive(bus: Bus, name: str, params: Mapping[str, Any]) -> VectorStepDrive:
     return VectorStepDrive(bus, name, params)
+
+
+# Parameters whose '' means a file of the installed stepper_drivers package: the node layer
+# (entry_points.py) finds it through ROS's package index; without a node, the source tree's.
+SHARE_FILES = {'can.eds_file': vm.EDS_FILE}
 
 
 VENDOR = Vendor(name='AEC Vector Step', params=PARAMS, make_bus=make_bus, make_drive=make_drive,

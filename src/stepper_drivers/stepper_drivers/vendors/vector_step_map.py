@@ -19,6 +19,12 @@ import os
 import pathlib
 from typing import Mapping
 
+# CiA 301 numbers, re-exported: the driver's PDO set below and the simulator use them as vm.*
+from ..protocol.cia301 import (EMCY_NO_ERROR, PDO_COB_BASES_RX, PDO_COB_BASES_TX,  # noqa: F401
+                               PDO_INVALID, PDO_RTR_NOT_ALLOWED, RPDO_COMMUNICATION, RPDO_MAPPING,
+                               TPDO_COMMUNICATION, TPDO_MAPPING, abort_text, mapping_entry,
+                               split_mapping_entry)
+
 # --- DS-301 communication objects [DS-301 V4.1 OBJECTS] ------------------------------------------
 DEVICE_TYPE = 0x1000
 ERROR_REGISTER = 0x1001
@@ -36,10 +42,6 @@ CONSUMER_HEARTBEAT_TIME = 0x1016
 PRODUCER_HEARTBEAT_TIME = 0x1017
 IDENTITY_OBJECT = 0x1018
 SDO1_PARAMETER = 0x1200
-RPDO_COMMUNICATION = 0x1400        # + n, n = 0..3
-RPDO_MAPPING = 0x1600
-TPDO_COMMUNICATION = 0x1800
-TPDO_MAPPING = 0x1A00
 
 # --- DSP-402 objects [DSP-402 V1.1 OBJECTS -> TAVOLA RIASSUNTIVA] --------------------------------
 ERROR_CODE = 0x603F
@@ -128,6 +130,8 @@ ANOMALOUS_REGISTERS: tuple[tuple[str, str, str, int], ...] = (
 DEVICE_TYPE_VALUE = 0x00040192       # DS402 profile, drive type 0x04 stepper
 DEVICE_PROFILE_DS402 = 0x0192
 VENDOR_ID_AEC = 0x000000BC
+# Rcanbaud (0x20A9) codes 0..7 and their bit rates [bit/s]: the rates a Vector Step can run at
+BITRATES = (10000, 20000, 50000, 125000, 250000, 500000, 800000, 1000000)
 PRODUCT_CODES = {0x0000138E: 'SMD5006', 0x00000BBE: 'SMD3006'}
 SUPPORTED_DRIVE_MODES_VALUE = 0x00010021   # bits 0 PP, 5 homing, 16 AEC velocity (not bit 6)
 RTESTINTMOT_VALUE = 1234567890              # 0x499602D2
@@ -302,19 +306,6 @@ DRIVER_TPDOS: tuple[tuple[tuple[int, int, int], ...], ...] = (
 DEFAULT_RPDO_MAPPING = ((0x60400010, 0x60600008), (0x60400010, 0x607A0020), (), ())
 DEFAULT_TPDO_MAPPING = ((0x60410010, 0x60610008), (0x60410010, 0x60640020), (), ())
 DEFAULT_TRANSMISSION_TYPE = 0xFE
-PDO_COB_BASES_RX = (0x200, 0x300, 0x400, 0x500)
-PDO_COB_BASES_TX = (0x180, 0x280, 0x380, 0x480)
-PDO_INVALID = 1 << 31
-PDO_RTR_NOT_ALLOWED = 1 << 30
-
-
-def mapping_entry(index: int, sub: int, bits: int) -> int:
-    """Mapping value: bits 31..16 index, 15..8 sub-index, 7..0 length in bits."""
-    return (index << 16) | (sub << 8) | bits
-
-
-def split_mapping_entry(value: int) -> tuple[int, int, int]:
-    return value >> 16, (value >> 8) & 0xFF, value & 0xFF
 
 
 # --- EMCY codes [PRE-DEFINED ERROR FIELD] -----------------------------------------------------
@@ -361,7 +352,6 @@ EMCY_CODES: Mapping[int, Emcy] = {e.code: e for e in (
     Emcy(0xFF15, 'power stage error, axis 3 (multi-axis drive)',
          "Errore nello stadio di potenza dell'azionamento per l'asse 3"),
 )}
-EMCY_NO_ERROR = 0x0000
 EMCY_POWER_STAGE = 0x5400
 EMCY_ERROR_CONTROL = 0x8130
 EMCY_PDO_TOO_LONG = 0x8210
@@ -450,26 +440,7 @@ RLOADSAV_SAVE_REGISTERS = 0x81
 RLOADSAV_RESET_REGISTERS = 0x84
 RLOADSAV_RESTART = (0x8E, 0x8F)      # "142-143 = restart, written consecutively"
 
-# --- SDO abort codes (CiA 301; the manual names the first five) ---------------------------------
-SDO_ABORTS: Mapping[int, str] = {
-    0x05040001: 'client/server command specifier not valid or unknown',
-    0x06010000: 'unsupported access to an object',
-    0x06010001: 'attempt to read a write only object',
-    0x06010002: 'attempt to write a read only object',
-    0x06020000: 'object does not exist in the object dictionary',
-    0x06040041: 'object cannot be mapped to the PDO',
-    0x06040042: 'the number and length of the objects to be mapped would exceed PDO length',
-    0x06040043: 'general parameter incompatibility reason',
-    0x06070010: 'data type does not match, length of service parameter does not match',
-    0x06090011: 'sub-index does not exist',
-    0x06090030: 'invalid value for parameter (download only)',
-    0x06090031: 'value of parameter written too high',
-    0x06090032: 'value of parameter written too low',
-    0x08000000: 'general error',
-    0x08000020: 'data cannot be transferred or stored to the application',
-    0x08000022: 'data cannot be transferred because of the present device state',
-    0x08000024: 'no data available',
-}
+# --- SDO abort codes (CiA 301; the manual names the first five; texts: cia301.abort_text) --
 ABORT_NOT_READABLE = 0x06010001
 ABORT_READ_ONLY = 0x06010002
 ABORT_NO_OBJECT = 0x06020000
@@ -481,10 +452,6 @@ ABORT_NO_SUBINDEX = 0x06090011
 ABORT_VALUE_RANGE = 0x06090030
 ABORT_DEVICE_STATE = 0x08000022
 ABORT_NO_DATA = 0x08000024
-
-
-def abort_text(code: int) -> str:
-    return f'SDO abort 0x{code:08X} ({SDO_ABORTS.get(code, "unknown abort code")})'
 
 
 def emcy_text(code: int, vendor_data: bytes = b'') -> str:
@@ -510,20 +477,15 @@ def bit_texts(value: int, table: Mapping[int, str]) -> str:
     return ', '.join(table.get(b, f'bit {b}') for b in range(32) if value & (1 << b))
 
 
+EDS_FILE = 'config/vector_step.eds'     # relative to the package share dir and the source tree
+
+
 def eds_path() -> pathlib.Path:
-    """config/vector_step.eds: the installed share directory, else the source tree."""
-    try:
-        from ament_index_python.packages import get_package_share_directory
-        path = pathlib.Path(get_package_share_directory('stepper_drivers')) / 'config' \
-            / 'vector_step.eds'
-        if path.exists():
-            return path
-    except (ImportError, LookupError, ValueError):
-        pass
+    """config/vector_step.eds of the source tree (tests, tools, a --symlink-install). A node
+    finds the installed one through ROS (entry_points.py) and passes it in as can.eds_file:
+    this module does not import ROS."""
     here = pathlib.Path(os.path.realpath(__file__)).parents[2]
-    for candidate in (here / 'config' / 'vector_step.eds',
-                      here.parents[1] / 'config' / 'vector_step.eds'):
+    for candidate in (here / EDS_FILE, here.parents[1] / EDS_FILE):
         if candidate.exists():
             return candidate
-    raise FileNotFoundError('vector_step.eds not found in the stepper_drivers share directory '
-                            'nor in the source tree (config/vector_step.eds)')
+    raise FileNotFoundError(f'{EDS_FILE} not found in the source tree: set can.eds_file')

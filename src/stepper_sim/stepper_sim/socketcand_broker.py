@@ -17,9 +17,10 @@ broker sends them on their own and holds frames for a new client for `ready_dela
 "< ok >" to rawmode (they are queued, not dropped). Remote (RTR) frames cannot be carried: the
 client sends them as 0-byte data frames (transports.md A4).
 
-Run: `python -m stepper_drivers.protocol.socketcand_broker --port 0` (prints the port it got) or
-the console script `socketcand_broker`; in-process: `with SocketcandBroker() as broker: ...`.
-Binds to the loopback interface only. No rclpy.
+Run: `ros2 run stepper_sim socketcand_broker --port 0` (prints the port it got) or
+`python -m stepper_sim.socketcand_broker`; in-process: `with SocketcandBroker() as broker: ...`.
+Binds to the loopback interface only. No rclpy. It is a stand-in for CAN hardware, like the
+simulators it serves, so it lives with them (stepper_sim), not in the driver's protocol layer.
 """
 
 from __future__ import annotations

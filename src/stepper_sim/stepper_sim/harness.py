@@ -1,4 +1,5 @@
-"""Start project executables as real processes (demo, benchmarks, tests).
+"""Start project executables as real processes: the harness of the tests, the demo and the
+benchmarks (not part of any drive's product path; it lives with the simulators).
 
 `Proc`: a process in its own process group, output captured to a file, waited on by evidence
 (a line it prints), stopped by its own PID with SIGINT (SIGKILL only if it does not end).
@@ -13,8 +14,8 @@ import signal
 import socket
 import subprocess
 import threading
-import time
-from typing import Any, Callable
+
+from stepper_drivers.cli.ros_client import wait_for  # noqa: F401 - one definition, re-exported
 
 
 def workspace_root() -> pathlib.Path:
@@ -43,19 +44,6 @@ def free_port() -> int:
     with socket.socket() as s:
         s.bind(('127.0.0.1', 0))
         return s.getsockname()[1]
-
-
-def wait_for(cond: Callable[[], Any], timeout_s: float = 5.0, what: str = 'condition',
-             period_s: float = 0.01) -> Any:
-    """Poll cond until it returns something truthy; fail naming `what` after timeout_s."""
-    deadline = time.monotonic() + timeout_s
-    while True:
-        value = cond()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            raise AssertionError(f'timed out after {timeout_s} s waiting for {what}')
-        time.sleep(period_s)
 
 
 def _die_with_parent() -> None:

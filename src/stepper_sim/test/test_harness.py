@@ -1,4 +1,4 @@
-"""tools.processes.Proc: a started process dies with the process that started it (main thread),
+"""harness.Proc: a started process dies with the process that started it (main thread),
 not with a worker thread that started it (the demo starts its processes from threads)."""
 
 import os
@@ -6,11 +6,11 @@ import subprocess
 import sys
 import textwrap
 
-from stepper_drivers.tools.processes import wait_for
+from stepper_sim.harness import wait_for
 
 STARTER = textwrap.dedent('''
     import os, pathlib, sys, tempfile, threading
-    from stepper_drivers.tools.processes import Proc
+    from stepper_sim.harness import Proc
     log = pathlib.Path(tempfile.mkdtemp())
     if sys.argv[1] == 'thread':
         box = []

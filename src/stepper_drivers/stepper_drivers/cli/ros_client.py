@@ -1,18 +1,34 @@
-"""A small rclpy client with a background executor: bounded waits for messages and services."""
+"""A small rclpy client with a background executor: bounded waits for messages and services.
+
+stepperctl talks to the nodes through it (cli/graph.py); tests, the demo and the benchmarks use
+it too. rclpy is imported when a client is made, so `wait_for` imports without ROS.
+"""
 
 from __future__ import annotations
 
 import threading
+import time
 from typing import Any, Callable
-
-from .processes import wait_for
 
 # How long one spin_once waits for work: also how soon close() ends the spin thread.
 SPIN_PERIOD_S = 0.05
 
 
+def wait_for(cond: Callable[[], Any], timeout_s: float = 5.0, what: str = 'condition',
+             period_s: float = 0.01) -> Any:
+    """Poll cond until it returns something truthy; fail naming `what` after timeout_s."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        value = cond()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f'timed out after {timeout_s} s waiting for {what}')
+        time.sleep(period_s)
+
+
 class RosClient:
-    """One rclpy node with a background executor, for tests."""
+    """One rclpy node with a background executor (stepperctl, tests, demo, benchmarks)."""
 
     def __init__(self, name: str = 'test_client'):
         import rclpy

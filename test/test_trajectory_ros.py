@@ -1,0 +1,162 @@
+"""Trajectories end to end (issue 12): ~/joint_trajectory and ~/follow_joint_trajectory of the
+vendor nodes against the simulators, as separate processes.
+
+Arrival is measured on the simulators' own axes (their true position topics, 20 Hz): the first
+sample of the final standstill. Bounds come from the settings: the node's poll period, one line
+transaction, one true-position sample and the middleware hops of the measurement.
+"""
+
+import math
+import threading
+import time
+
+import pytest
+from builtin_interfaces.msg import Duration
+from rosharness import MIDDLEWARE_S, Track, wait_for
+from stepper_drivers_msgs.action import FollowJointTrajectory
+from stepper_drivers_msgs.msg import JointTolerance
+from test_rd4_ros import Bench as Rd4Bench
+from test_xplus_mt_ros import Bench as XplusBench
+from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+
+RD4_STEPS_PER_RAD = 1024 / (2 * math.pi)
+XPLUS_STEPS_PER_RAD = 12800 / (2 * math.pi)
+
+
+def trajectory(joints, points):
+    """points: [(time_from_start_s, [positions])]"""
+    msg = JointTrajectory(joint_names=list(joints))
+    for t, positions in points:
+        sec = int(t)
+        msg.points.append(JointTrajectoryPoint(
+            positions=[float(p) for p in positions],
+            time_from_start=Duration(sec=sec, nanosec=int(round((t - sec) * 1e9)))))
+    return msg
+
+
+class Rd4LineBench(Rd4Bench):
+    """Two RD4 units on one line with the simulator's 19200-baud line timing, polled at 10 Hz
+    (config/rd4.yaml)."""
+
+    node_extra_args = ('-p', 'timeout_s:=0.3')
+
+    def sim_args(self):
+        return super().sim_args() + ['-p', 'line_timing:=true']
+
+
+@pytest.fixture
+def rd4(procs, ros, tmp_path):
+    return Rd4LineBench(procs, ros, tmp_path)
+
+
+@pytest.fixture
+def xplus(procs, ros, tmp_path):
+    return XplusBench(procs, ros, tmp_path)
+
+
+def test_rd4_axes_on_one_line_arrive_together(rd4):
+    """Both units start from 0; their moves go out one after the other on the line, yet they
+    arrive together: the second one's profile is computed for the time left."""
+    rate_hz = 10.0                                 # config/rd4.yaml publish_rate_hz
+    transaction_s = 0.025                          # an FC16 of 4 registers at 19200, with t3.5
+    for d in rd4.drives:
+        rd4.enable(d)
+    tracks = {d: Track(rd4.ros, rd4.true_topic(d)) for d in rd4.drives}
+    t0 = time.monotonic()
+    rd4.ros.publish(JointTrajectory, '/rd4_node/joint_trajectory',
+                    trajectory(['rd4_joint1', 'rd4_joint2'], [(1.5, [3.0, 1.0])]))
+    arrived = {d: tracks[d].wait_still(0.3, 10.0, f'{d} at rest') for d in rd4.drives}
+    for d, rad in (('axis1', 3.0), ('axis2', 1.0)):
+        assert rd4.true_steps(d) == pytest.approx(rad * RD4_STEPS_PER_RAD, abs=1)
+    spread = abs(arrived['axis1'] - arrived['axis2'])
+    assert spread <= 1 / rate_hz + transaction_s + Track.SAMPLE_S, spread
+    for d in rd4.drives:     # not early, and late by no more than the moves' own transactions
+        late = arrived[d] - t0 - 1.5
+        assert -Track.SAMPLE_S <= late <= 1 / rate_hz + 4 * transaction_s + Track.SAMPLE_S \
+            + MIDDLEWARE_S, (d, late)
+
+
+class Goal:
+    """One follow_joint_trajectory goal through rclpy's ActionClient, with its feedback."""
+
+    def __init__(self, bench, goal):
+        from rclpy.action import ActionClient
+        self.client = ActionClient(bench.ros.node, FollowJointTrajectory,
+                                   f'{bench.node_ns}/follow_joint_trajectory')
+        assert self.client.wait_for_server(timeout_sec=10)
+        self.bench, self.feedback = bench, []
+        done = threading.Event()
+        # in_spin: rclpy's ActionClient races its own executor when called from another thread
+        fut = bench.ros.in_spin(self.client.send_goal_async, goal,
+                                feedback_callback=lambda f: self.feedback.append(f.feedback))
+        fut.add_done_callback(lambda _f: done.set())
+        assert done.wait(10) and fut.result().accepted
+        self.handle = fut.result()
+
+    def result(self, timeout_s):
+        got = threading.Event()
+        fut = self.bench.ros.in_spin(self.handle.get_result_async)
+        fut.add_done_callback(lambda _f: got.set())
+        assert got.wait(timeout_s)
+        # in the spin thread: destroyed from another one while the executor waits on it,
+        # rclpy fails the wait set ('action client pointer is invalid') and stops spinning
+        self.bench.ros.in_spin(self.client.destroy)
+        return fut.result().result
+
+
+def test_xplus_follow_action_gives_feedback_and_reaches_the_goal(xplus):
+    for d in xplus.drives:
+        xplus.enable(d)
+    goal = FollowJointTrajectory.Goal(trajectory=trajectory(
+        ['xplus_joint1', 'xplus_joint2'], [(0.6, [2.0, -1.0]), (1.2, [1.0, 1.0])]))
+    goal.goal_tolerance = [JointTolerance(name='xplus_joint1', position=0.001),
+                           JointTolerance(name='xplus_joint2', position=0.001)]
+    g = Goal(xplus, goal)
+    result = g.result(10.0)
+    assert result.error_code == FollowJointTrajectory.Result.SUCCESSFUL, result.error_string
+    for d, rad in (('axis1', 1.0), ('axis2', 1.0)):
+        assert xplus.true_steps(d) == pytest.approx(rad * XPLUS_STEPS_PER_RAD, abs=2)
+    assert len(g.feedback) >= 5
+    mid = g.feedback[len(g.feedback) // 2]
+    assert list(mid.joint_names) == ['xplus_joint1', 'xplus_joint2']
+    for k in range(2):
+        assert mid.error.positions[k] == pytest.approx(
+            mid.desired.positions[k] - mid.actual.positions[k], abs=1e-9)
+
+
+def test_xplus_impossible_segment_is_refused_before_anything_moves(xplus):
+    xplus.enable('axis1')
+    before = xplus.fresh_true_steps('axis1')
+    # 40 rad in 0.1 s needs 16000 rad/s^2; max_acceleration is 2000 (config/xplus_mt.yaml)
+    g = Goal(xplus, FollowJointTrajectory.Goal(trajectory=trajectory(
+        ['xplus_joint1'], [(0.1, [40.0])])))
+    result = g.result(5.0)
+    assert result.error_code == FollowJointTrajectory.Result.INVALID_GOAL
+    assert 'xplus_joint1: segment to point 0' in result.error_string
+    assert 'max_acceleration' in result.error_string
+    assert not xplus.status('axis1').moving
+    assert xplus.fresh_true_steps('axis1') == before
+
+
+def test_xplus_unknown_joint_is_invalid_joints(xplus):
+    g = Goal(xplus, FollowJointTrajectory.Goal(trajectory=trajectory(
+        ['elbow'], [(1.0, [1.0])])))
+    result = g.result(5.0)
+    assert result.error_code == FollowJointTrajectory.Result.INVALID_JOINTS
+    assert "['elbow'] are not driven by this node" in result.error_string
+
+
+def test_xplus_a_new_trajectory_replaces_the_old_and_an_empty_one_stops(xplus):
+    xplus.enable('axis1')
+    topic = '/xplus_mt_node/joint_trajectory'
+    xplus.ros.publish(JointTrajectory, topic, trajectory(['xplus_joint1'], [(3.0, [30.0])]))
+    xplus.status('axis1', lambda m: m.moving, what='moving to 30 rad')
+    xplus.ros.publish(JointTrajectory, topic, trajectory(['xplus_joint1'], [(1.0, [-1.0])]))
+    xplus.status('axis1', lambda m: not m.moving and abs(m.position + 1.0) < 1e-3, 5.0,
+                 'at -1 rad: the newer trajectory replaced the rest of the old one')
+    xplus.ros.publish(JointTrajectory, topic, trajectory(['xplus_joint1'], [(3.0, [30.0])]))
+    xplus.status('axis1', lambda m: m.moving and m.position > 0, what='moving to 30 rad again')
+    xplus.ros.publish(JointTrajectory, topic, JointTrajectory(joint_names=['xplus_joint1']))
+    st = xplus.status('axis1', lambda m: not m.moving, 3.0, 'stopped by the empty trajectory')
+    assert st.position < 20.0
+    wait_for(lambda: not xplus.status('axis1').moving, 2.0, 'still stopped')
