@@ -14,13 +14,15 @@ import pytest
 from builtin_interfaces.msg import Duration
 from rosharness import MIDDLEWARE_S, Track, wait_for
 from stepper_drivers_msgs.action import FollowJointTrajectory
-from stepper_drivers_msgs.msg import JointTolerance
+from stepper_drivers_msgs.msg import DriveStatus, JointTolerance
 from test_rd4_ros import Bench as Rd4Bench
+from test_vector_step_ros import Rig as VectorRig
 from test_xplus_mt_ros import Bench as XplusBench
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 RD4_STEPS_PER_RAD = 1024 / (2 * math.pi)
 XPLUS_STEPS_PER_RAD = 12800 / (2 * math.pi)
+VECTOR_STEPS_PER_RAD = 3200 / (2 * math.pi)
 
 
 def trajectory(joints, points):
@@ -160,3 +162,67 @@ def test_xplus_a_new_trajectory_replaces_the_old_and_an_empty_one_stops(xplus):
     st = xplus.status('axis1', lambda m: not m.moving, 3.0, 'stopped by the empty trajectory')
     assert st.position < 20.0
     wait_for(lambda: not xplus.status('axis1').moving, 2.0, 'still stopped')
+
+
+class VectorIpRig(VectorRig):
+    """Two Vector Steps, the node's SYNC every 10 ms: trajectories stream in interpolated
+    position mode (0x60C2 = 10 ms, the longest the manual allows)."""
+
+    first_sim_args = ()
+    node_extra_args = ('-p', 'timeout_s:=1.5', '-p', 'can.sync_period_s:=0.01')
+
+
+@pytest.fixture
+def vector_ip(tmp_path):
+    r = VectorIpRig(tmp_path)
+    yield r
+    r.close()
+
+
+def test_vector_step_follows_in_interpolated_mode_within_2_percent(vector_ip):
+    rig = vector_ip
+    for d in rig.drives:
+        rig.enable(d)
+    modes = []
+    rig.ros.node.create_subscription(
+        DriveStatus, '/vector_step_node/axis1/status', lambda m: modes.append(m.mode), 50)
+    points = [(1.0, [2.0, 1.0]), (2.0, [0.5, 2.5])]
+    goal = FollowJointTrajectory.Goal(trajectory=trajectory(
+        ['vector_joint1', 'vector_joint2'], points))
+    g = Goal(rig, goal)
+    result = g.result(15.0)
+    assert result.error_code == FollowJointTrajectory.Result.SUCCESSFUL, result.error_string
+    assert any('INTERPOLATED POSITION' in m for m in modes), set(modes)
+    for d, rad in (('axis1', 0.5), ('axis2', 2.5)):      # (the true position topic lags)
+        rig.ros.wait_msg(rig.true_topic(d), lambda m, s=rad * VECTOR_STEPS_PER_RAD:
+                         abs(m.data - s) <= 2, 2.0, f'{d} at {rad} rad')
+    # following error against the planned profile (the action's feedback, 10 Hz): under 2 %
+    # of the longest segment, 2.0 rad (issue 12's goal for the Vector Step)
+    worst = max(abs(e) for f in g.feedback for e in f.error.positions)
+    assert len(g.feedback) >= 10 and worst < 0.02 * 2.0, worst
+    # the stream ended: the periodic SYNC is back (the drives' 0x1006 watchdog) and no alarm
+    st = rig.status('axis1', lambda m: not m.moving)
+    assert not st.fault and not st.alarms
+
+
+class VectorP2PRig(VectorRig):
+    first_sim_args = ()           # both power stages work
+
+
+def test_vector_step_point_to_point_with_the_default_sync_period(tmp_path):
+    rig = VectorP2PRig(tmp_path)
+    try:
+        for d in rig.drives:
+            rig.enable(d)
+        tracks = {d: Track(rig.ros, rig.true_topic(d)) for d in rig.drives}
+        t0 = time.monotonic()
+        g = Goal(rig, FollowJointTrajectory.Goal(trajectory=trajectory(
+            ['vector_joint1', 'vector_joint2'], [(1.0, [2.0, -1.0])])))
+        assert g.result(10.0).error_code == FollowJointTrajectory.Result.SUCCESSFUL
+        arrived = {d: tracks[d].wait_still(0.2, 5.0, f'{d} at rest') for d in rig.drives}
+        spread = abs(arrived['axis1'] - arrived['axis2'])
+        assert spread <= 1 / 50.0 + 0.005 + Track.SAMPLE_S, spread    # poll + one SDO/PDO
+        for d in rig.drives:
+            assert arrived[d] - t0 >= 1.0 - Track.SAMPLE_S
+    finally:
+        rig.close()

@@ -35,6 +35,10 @@ logger = logging.getLogger(__name__)
 
 TICK_S = 0.02                 # how often a run checks tolerances and cancellation
 GOAL_WAIT_MAX_S = 10.0        # without a goal_time_tolerance: the longest wait for standstill
+# An interpolated axis is where its set point was this many SYNC periods ago: the point written
+# at a tick waits in the buffer behind the one before, is taken at the next tick's SYNC and
+# reached one period later.
+STREAM_LEAD_PERIODS = 2
 
 # Result codes, as control_msgs/action/FollowJointTrajectory names them.
 SUCCESSFUL = 0
@@ -106,9 +110,14 @@ class Run:
         self._cancel_why = ''
         self._replaced_at: float | None = None
         self._jobs: list[concurrent.futures.Future] = []
+        self._streams: list[concurrent.futures.Future] = []
         self.final_steps = dict(start_steps)
         for point in traj.points:
             self.final_steps.update(zip(traj.joints, point.positions_steps))
+        # joints whose drive follows a stream of set points (Vector Step interpolated
+        # position) rather than point-to-point moves
+        self.streamed = {j for j in traj.joints
+                         if getattr(follower.axes[j].drive, 'interpolation_period_s', None)}
         self._thread = threading.Thread(target=self._run, name='trajectory', daemon=True)
 
     # ------------------------------------------------------------------------ other threads
@@ -155,7 +164,12 @@ class Run:
                 return problem
             if self._replaced_at is not None and clock() >= self._replaced_at:
                 return _aborted(SUCCESSFUL, REPLACED)
+            if seg is self.segments[0]:
+                self._streams = self.follower.stream(self)   # interpolated axes, if any
+                self._jobs += self._streams
             for move in seg.moves:
+                if move.joint in self.streamed:
+                    continue
                 axis = self.follower.axes[move.joint]
                 self._jobs.append(axis.sup.submit(
                     axis.drive_name, COMMAND,
@@ -177,8 +191,11 @@ class Run:
             far = self._off_goal()
             if not far:
                 return _succeeded('every joint reached its goal')
+            # (a stream still running: an interpolated axis rests between set points now and
+            # then, its 'moving' is no sign of the end)
             if not self.tol.goal_time_s and not any(
-                    self.follower.axes[j].moving() for j in self.traj.joints):
+                    self.follower.axes[j].moving() for j in self.traj.joints) \
+                    and all(f.done() for f in self._streams):
                 return _aborted(GOAL_TOLERANCE_VIOLATED, '; '.join(far))
             if clock() >= deadline:
                 self._stop_axes()
@@ -294,6 +311,7 @@ class Follower:
         self.clock = clock
         self._lock = threading.Lock()
         self.current: Run | None = None
+        self._streams: dict[int, Stream] = {}
 
     def follow(self, traj: Trajectory, start_t: float | None = None,
                tol: Tolerances = Tolerances()) -> Run:
@@ -348,5 +366,96 @@ class Follower:
             run.cancel(why)
             run._stop_axes()
 
+    # ------------------------------------------------------------------ interpolated axes
+    def stream(self, run: Run) -> list[concurrent.futures.Future]:
+        """The streaming jobs `run`'s interpolated joints need: one per bus, shared with the
+        run before it when that one streamed the same bus (a newer trajectory continues the
+        stream from its take-over)."""
+        futs = []
+        by_bus: dict[int, list[Axis]] = {}
+        for joint in run.traj.joints:
+            if joint in run.streamed:
+                axis = self.axes[joint]
+                by_bus.setdefault(id(axis.sup), []).append(axis)
+        with self._lock:
+            for key, axes in by_bus.items():
+                job = self._streams.get(key)
+                if job is None or job.future.done() or \
+                        not {a.joint for a in axes} <= set(job.axes):
+                    job = Stream(self, axes)
+                    self._streams[key] = job
+                    job.future = axes[0].sup.submit(
+                        axes[0].drive_name, COMMAND, job.run,
+                        f'interpolated trajectory of {[a.joint for a in axes]}', disarms=True,
+                        polled=True)
+                futs.append(job.future)
+        return futs
+
     def stop_axis(self, axis: Axis, label: str) -> concurrent.futures.Future:
         return axis.sup.submit(axis.drive_name, URGENT, axis.drive.stop, label, disarms=True)
+
+
+class Stream:
+    """One bus's interpolated axes (Vector Step mode 7): a step-wise job of the bus owner that
+    starts interpolation on every axis, then, once a SYNC period, writes each axis's position of
+    the current trajectory one buffer ahead (STREAM_LEAD_PERIODS) and sends the SYNC itself, so
+    each drive takes exactly one point per SYNC: its two-position buffer never runs dry (EMCY
+    FF03) or over. The periodic SYNC producer is paused meanwhile and restarted at the end, also
+    when a stop cuts the job short (a node that hangs sends no SYNC: the drives' SYNC watchdogs
+    stop them). Ends a few periods after the current trajectory's end, leaving the axes at rest
+    out of interpolation (bit 4 low)."""
+
+    def __init__(self, follower: Follower, axes: list[Axis]):
+        self.follower = follower
+        self.axes = {a.joint: a for a in axes}
+        self.period_s = axes[0].drive.interpolation_period_s
+        self.bus = axes[0].drive.bus
+        self.future: concurrent.futures.Future | None = None
+        self.held: dict[str, float] = {}
+
+    def run(self):
+        clock = self.follower.clock
+        self.bus.own_sync()
+        try:
+            next_t = clock()
+            for axis in self.axes.values():           # SYNC goes on between the steps
+                steps = axis.drive.start_interpolation(self.period_s)
+                try:
+                    while True:
+                        delay = next(steps)
+                        next_t = self._tick(next_t, started=self.held)
+                        yield min(delay, max(0.0, next_t - clock()))
+                except StopIteration as done:
+                    self.held[axis.joint] = float(done.value)
+            while True:
+                next_t = self._tick(next_t, started=self.held, final=True)
+                if next_t is None:
+                    break
+                yield max(0.0, next_t - clock())
+        finally:
+            self.bus.periodic_sync()
+        for axis in self.axes.values():              # at rest on the last point: leave mode 7
+            axis.drive.stop()
+
+    def _tick(self, next_t: float, started: dict, final: bool = False) -> float | None:
+        """At or after next_t: one point per started axis, then the SYNC. Returns the next
+        tick time; None (final) once the current trajectory is over."""
+        clock = self.follower.clock
+        now = clock()
+        if now < next_t:
+            return next_t
+        run = self.follower.current
+        lead_t = now + STREAM_LEAD_PERIODS * self.period_s
+        desired = run.desired_steps(lead_t) if run is not None else {}
+        for joint in started:
+            if joint in desired and joint in run.traj.joints:
+                started[joint] = desired[joint]
+            self.axes[joint].drive.interpolation_point(int(round(started[joint])))
+        self.bus.send_sync()
+        if final and (run is None or run.done.done() or not set(self.axes) & set(run.traj.joints)
+                      or now > run.end_t + (STREAM_LEAD_PERIODS + 3) * self.period_s):
+            return None
+        following = next_t + self.period_s
+        # late by more than a period (a busy owner): the next SYNC a period from now, not a
+        # burst of them (the drives check the SYNC timing: EMCY FF04 too early)
+        return following if following > now else now + self.period_s

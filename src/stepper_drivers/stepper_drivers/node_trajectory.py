@@ -176,12 +176,13 @@ class TrajectoryInterface:
         return result
 
     def _feedback(self, run: Run, fb) -> None:
-        desired = run.desired_steps(time.monotonic())
         fb.header = Header(stamp=self.node.get_clock().now().to_msg())
         d, a, e = JointTrajectoryPoint(), JointTrajectoryPoint(), JointTrajectoryPoint()
         for joint in run.traj.joints:
             h = self._handle(joint)
-            want = h.conv.from_steps(desired[joint])
+            # desired at the time of the snapshot `actual` comes from (up to a poll period old):
+            # the error is then the drive's following error, not the age of the snapshot
+            want = h.conv.from_steps(run.desired_steps(h.slot.state_t)[joint])
             d.positions.append(float(want))
             a.positions.append(float(h.position))
             e.positions.append(float(want - h.position))

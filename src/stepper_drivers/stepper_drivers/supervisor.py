@@ -76,6 +76,9 @@ class Job:
     motion: bool = True         # a stop of the drive drops this job, or cuts it short
     enqueued_t: float = 0.0
     arm_seq: int = 0            # the drive's watchdog arming count when this job was submitted
+    # a step-wise job between whose steps the drive itself is still polled (a stream of set
+    # points that lasts seconds: the drive's state must stay fresh meanwhile)
+    polled: bool = False
 
     def preempted_by(self, urgent: 'Job') -> bool:
         """A stop drops motion; a disable (an URGENT job that is not motion itself) drops
@@ -92,6 +95,7 @@ class Slot:
         self.name = name
         self.drive = drive
         self.state = DriveState(state=State.DISCONNECTED)
+        self.state_t = 0.0           # clock() of the poll that read `state`
         self.connected = False
         self.identity: dict[str, str] = {}
         self.polls = 0               # successful read_state() results
@@ -157,11 +161,12 @@ class BusSupervisor:
         return self._thread.is_alive()
 
     def submit(self, drive: str, kind: str, fn: Callable[[], Any], label: str, *,
-               topic: str = '', disarms: bool = False, motion: bool = True
-               ) -> concurrent.futures.Future:
+               topic: str = '', disarms: bool = False, motion: bool = True,
+               polled: bool = False) -> concurrent.futures.Future:
         """Queue `fn` (called in the owner thread; may return Steps) for `drive`."""
         fut: concurrent.futures.Future = concurrent.futures.Future()
-        job = Job(drive, kind, fn, label, fut, topic, disarms, motion, self.clock())
+        job = Job(drive, kind, fn, label, fut, topic, disarms, motion, self.clock(),
+                  polled=polled)
         with self._cv:
             job.arm_seq = self.slots[drive].arm_seq
             if self._stopping:
@@ -263,7 +268,8 @@ class BusSupervisor:
                     and now >= slot.velocity_deadline and now >= slot.watchdog_retry_t:
                 self._watchdog_stop(slot)
                 return 0.0
-        due = sorted((s for s in self.slots.values() if s.connected and s.active is None
+        due = sorted((s for s in self.slots.values() if s.connected
+                      and (s.active is None or s.active.polled)
                       and now >= s.next_poll_t), key=lambda s: s.next_poll_t)
         if due and now >= due[0].next_poll_t + self._period_s() \
                 and self._jobs_since_poll >= MAX_JOBS_BEFORE_OVERDUE_POLL:
@@ -325,7 +331,7 @@ class BusSupervisor:
             if s.poll_steps is not None:
                 times.append(s.poll_wake_t)
             if s.connected:
-                if s.active is None:
+                if s.active is None or s.active.polled:
                     times.append(s.next_poll_t)
                 if s.velocity_deadline is not None:
                     times.append(max(s.velocity_deadline, s.watchdog_retry_t))
@@ -488,6 +494,7 @@ class BusSupervisor:
             self._drive_lost(slot, f'unexpected error {exc!r}')
             return
         slot.state = state
+        slot.state_t = self.clock()
         slot.polls += 1
         self._resolve_waiters(slot, True)
         self._cycle_polled.add(slot.name)

@@ -27,7 +27,8 @@ or more `VectorStepNode`s. Each node is a `canopen.LocalNode` built from config/
     Ralarmreact, the error register 0x1001, history 0x1003 (2 entries) and 0x603F, fault reset
     as the manual's procedure ([SEGNALAZIONE DI ERRORE]), save/load through Rloadsav 0x20C2.
 The simulator ignores S-curve profiles (0x6086): moves are trapezoidal. `main()` wraps it in
-the common ROS simulator node (sim_node.run_sim). Nothing here imports the driver's state logic.
+the common ROS simulator node (sim_node.run_sim), on the EDS installed with stepper_drivers
+(`installed_eds()`). Nothing here imports the driver's state logic.
 
 Modules, along CANopen's own seams: vector_step_nmt (NMT, error control, EMCY, SYNC watchdog),
 vector_step_sdo (SDO server checks), vector_step_pdo (PDO engine), vector_step_drive (the AEC
@@ -40,6 +41,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+import os
 import sys
 import threading
 import time
@@ -419,8 +421,9 @@ class VectorStepSim:
 
 
 # ============================================================================ ROS wrapper
-def build(node) -> VectorStepSim:
-    """Declare the simulator's parameters on the ROS node and build the backend."""
+def build(node, eds: str | None = None) -> VectorStepSim:
+    """Declare the simulator's parameters on the ROS node and build the backend (on `eds`, the
+    source tree's config/vector_step.eds when None)."""
     from .sim_node import declare, declare_drives
     nan = math.nan
     interface = declare(node, 'can.interface', 'socketcand', 'python-can interface')
@@ -467,7 +470,19 @@ def build(node) -> VectorStepSim:
             homing_error_faults=bool(p['homing_error_faults']),
             strict_fault_reset=bool(p['strict_fault_reset'])))
     return VectorStepSim(configs, interface=interface, channel=channel, host=host, port=int(port),
-                         reboot_delay_s=float(reboot), cycle_s=float(cycle), storage_dir=storage)
+                         eds=eds, reboot_delay_s=float(reboot), cycle_s=float(cycle),
+                         storage_dir=storage)
+
+
+def installed_eds() -> str | None:
+    """config/vector_step.eds in the installed share directory of stepper_drivers, found through
+    ROS's package index: an apt-style install has no source tree for vm.eds_path() to look in
+    (vector_step_map imports no ROS). None when stepper_drivers is not installed."""
+    from ament_index_python.packages import PackageNotFoundError, get_package_share_directory
+    try:
+        return os.path.join(get_package_share_directory('stepper_drivers'), vm.EDS_FILE)
+    except PackageNotFoundError:
+        return None
 
 
 def main(args: list[str] | None = None) -> None:
@@ -475,4 +490,5 @@ def main(args: list[str] | None = None) -> None:
     import signal
     faulthandler.register(signal.SIGUSR1)          # kill -USR1 <pid>: thread dump in the log
     from .sim_node import run_sim
-    sys.exit(run_sim('vector_step_sim', build, args))
+    eds = installed_eds()
+    sys.exit(run_sim('vector_step_sim', lambda node: build(node, eds), args))

@@ -1,14 +1,14 @@
-"""One simulated R.T.A. X-PLUS MT drive: register image, CiA 402 glue, modes, faults, storage.
+"""One simulated R.T.A. X-PLUS MT drive: configuration, register image, CiA 402 glue, storage.
 
 The drive behind the Modbus TCP front of `xplus_mt_sim.py` (behaviour and manual references are
 listed there). The CiA 402 power state machine, the statusword state bits and the PP set-point
-handshake are the shared device-side tables of `cia402_device.py` (profile `XPLUS_MT`); this
-module adds what the X-PLUS MT does around them: HV for Switch On (§12 transition 3), the 1085
-following-error reaction, profile position with multi-set-point and halt, profile velocity,
-homing on a SimAxis, limit switches, the 1097 watchdog, the alarm log and 1260/1261 storage.
-
-Over 600 lines: the drive's register behaviour (§13, register by register) is one unit; its
-parts share the register image and lock, and a split would only move `self._regs` around.
+handshake are the shared device-side tables of `cia402_device.py` (profile `XPLUS_MT`). This
+module holds the device's state and lock, the register image and its Modbus reads and writes
+(§11, §13 register by register), the digital I/O registers, HV for Switch On (§12 transition 3),
+the cia402_device hooks, the 1097 watchdog and 1260/1261 storage. Along the drive's own seams,
+two mixins hold the rest: `xplus_mt_modes` (profile position with multi-set-point and halt,
+profile velocity, homing on a SimAxis, limit switches, the statusword bits of each mode) and
+`xplus_mt_faults` (faults, the alarm log, the 1085 following-error reaction, injections).
 """
 
 from __future__ import annotations
@@ -27,20 +27,17 @@ from pymodbus.constants import ExcCodes
 from stepper_drivers.vendors import xplus_mt_map as xm
 
 from . import cia402_device as cia
-from .axis import HOME, LIMIT_NEG, LIMIT_POS, AxisEvent, HomingRun, SimAxis
-from .cia402_device import (CW_CHANGE_SET_IMMEDIATELY, CW_HALT, CW_NEW_SET_POINT, CW_RELATIVE,
-                            FAULT, FRA, OE, QSA, RTSO, SO, SOD, SW_BIT12, SW_BIT13,
-                            SW_INTERNAL_LIMIT, SW_PROFILE_RAMP, SW_TARGET_REACHED)
+from .axis import HOME, LIMIT_NEG, LIMIT_POS, HomingRun, SimAxis
+from .cia402_device import FAULT, FRA, OE, QSA, RTSO, SO, SOD
 from .motion import INF
+from .xplus_mt_faults import HV_STABLE_S, LOST_REPLY_HOLD_S, XplusMtFaults
+from .xplus_mt_modes import XplusMtModes
+
+# LOST_REPLY_HOLD_S: xplus_mt_sim holds a lost reply this long
+__all__ = ['LOST_REPLY_HOLD_S', 'XplusMtDevice', 'XplusMtDriveConfig']
 
 logger = logging.getLogger(__name__)
 
-HV_STABLE_S = 0.5               # §12 transition 3: HV present >= 500 ms before Switch On
-START_STOP_HZ = xm.START_STOP_MAX_HZ
-# 'lose_write_reply': the next write of register `code` whose word has every bit of `value`
-# set takes effect, but its reply is held this long: lost to a master with a shorter timeout
-LOST_REPLY_HOLD_S = 2.0
-INPUT_NAMES = ('home', 'limit_neg', 'limit_pos', 'I0', 'I1', 'I2', 'I3')
 
 # Output Config (1089) -> functions of O0, O1, O2 (T23 S4, T25 B4); 'gp' = general purpose.
 OUTPUT_FUNCTIONS = {
@@ -110,7 +107,7 @@ def _none_if_nan(value: float | None) -> float | None:
     return None if value is None or math.isnan(value) else float(value)
 
 
-class XplusMtDevice:
+class XplusMtDevice(XplusMtModes, XplusMtFaults):
     """One X-PLUS MT: register image, state machine, modes, faults, over a SimAxis.
 
     Thread-safe (one lock): the Modbus server thread and the ROS thread both call it.
@@ -261,19 +258,6 @@ class XplusMtDevice:
 
     def _hv_stable(self, now: float) -> bool:
         return self.hv_present and now - self._hv_since >= HV_STABLE_S
-
-    def _update_pv_timers(self, now: float) -> None:
-        v = abs(self.axis.velocity_hz)
-        if v > self._regs[1062]:                        # §13 "Register 1062"
-            if self._v_above_since is None:
-                self._v_above_since = now
-        else:
-            self._v_above_since = None
-        if v < self._regs[1064]:                        # §13 "Register 1064"
-            if self._v_below_since is None:
-                self._v_below_since = now
-        else:
-            self._v_below_since = None
 
     # ------------------------------------------------------------------ Modbus access
     def read(self, address: int, count: int) -> list[int] | ExcCodes:
@@ -432,55 +416,6 @@ class XplusMtDevice:
             return self._regs[1156]
         return self._regs[a]
 
-    def _statusword(self) -> int:
-        state = self.state
-        sw = self.cia.state_word(voltage_enabled=self.hv_present)
-        if state == FRA:
-            return sw | SW_BIT13            # 0x201F: Remote = 0, Quick Stop = 0 (§13 1085)
-        mode = self.mode
-        m = self.axis.motion
-        homing = cia.homing_bits(attained=self._homing_attained,
-                                 error=self._homing_error and state != FAULT,
-                                 running=self._homing is not None and not self._homing.done,
-                                 moving=m.moving)
-        if self.cia.shows_target_reached():
-            if state == QSA or mode not in (1, 3, 6):
-                reached = not m.moving
-            elif mode == 1:
-                reached = self._set_point.target_reached(m.moving) and not self._halt_released
-            elif mode == 6:
-                reached = bool(homing & SW_TARGET_REACHED)
-            else:
-                reached = self._pv_bit10()
-            if reached:
-                sw |= SW_TARGET_REACHED
-            if self._limit_stop:
-                sw |= SW_INTERNAL_LIMIT
-            if self._regs[1107] and mode in (1, 6) and m.in_ramp:
-                sw |= SW_PROFILE_RAMP
-        if mode == 1 and state == OE and self._set_point.acknowledged:
-            sw |= SW_BIT12
-        elif mode == 6:
-            sw |= homing & (SW_BIT12 | SW_BIT13)
-        elif mode == 3 and self._zero_speed():
-            sw |= SW_BIT12
-        if state != FAULT and self._following_error:
-            sw |= SW_BIT13
-        return sw
-
-    def _pv_bit10(self) -> bool:
-        now = self.axis.motion.time_s
-        if self.config.pv_bit10 == 'cia':
-            return (abs(self.axis.motion.target_velocity_hz - self.axis.velocity_hz)
-                    <= self._regs[1062])
-        return (self._v_above_since is not None
-                and now - self._v_above_since >= self._regs[1063] / 1000.0)
-
-    def _zero_speed(self) -> bool:
-        now = self.axis.motion.time_s
-        return (self._v_below_since is not None
-                and now - self._v_below_since >= self._regs[1065] / 1000.0)
-
     def _digital_inputs(self) -> int:
         ax = self.axis
         neg, pos, home = ax.input(LIMIT_NEG), ax.input(LIMIT_POS), ax.input(HOME)
@@ -575,320 +510,6 @@ class XplusMtDevice:
                 if self._encoder_reset_pending:
                     self._encoder_reset_pending = False
                     self.axis.set_position(0.0)
-
-    def _mode_decel(self) -> float:
-        """Deceleration of the active mode (spec §3.7 [R]: quick stop uses it too)."""
-        if abs(self.axis.velocity_hz) <= START_STOP_HZ:
-            return INF
-        if self.mode == 3:
-            return float(self._regs[1072])
-        if self.mode == 6:
-            return float(self._regs[1056])
-        return self._move_accel if self._pp_moving else float(self._regs[1046])
-
-    # ------------------------------------------------------------------ modes
-    def _on_mode_change(self, now: float) -> None:
-        if self.axis.moving and self.state == OE:
-            self.axis.motion.stop(self._mode_decel())
-        self._abort_homing()
-        self._pv_started = False
-        self._pp_moving = False
-        self._set_point.reset()
-        self._halt_released = False
-
-    def _mode_bits(self, cw: int, rising: int, falling: int) -> None:
-        mode = self.mode
-        if rising & CW_HALT:
-            self._halt()
-        if falling & CW_HALT:
-            if mode == 1 and self._halted:
-                self._halt_released = True  # §13 bit 8: target reached -> 0, move abandoned
-            self._halted = False
-            if mode == 3 and self._pv_following():
-                self._pv_follow()
-        if falling & CW_NEW_SET_POINT:
-            self._set_point.released()      # A23: CiA handshake
-            if mode == 3 and self._pv_started:
-                self._pv_started = False
-                self._stop_motion()
-            if mode == 6 and self._homing is not None and not self._homing.done:
-                self._abort_homing()
-        if rising & CW_NEW_SET_POINT and not cw & CW_HALT:
-            if mode == 1:
-                self._new_set_point(cw)
-            elif mode == 3:
-                self._pv_started = True
-                self._pv_follow()
-            elif mode == 6:
-                self._start_homing()
-
-    def _halt(self) -> None:
-        mode = self.mode
-        if mode == 6 and self._homing is not None and not self._homing.done:
-            self._homing.abort(self._mode_decel())
-        elif self.axis.moving:
-            self.axis.motion.stop(self._mode_decel())
-        self._halted = True
-
-    def _stop_motion(self) -> None:
-        if self.axis.moving:
-            self.axis.motion.stop(self._mode_decel())
-
-    # Profile position (§13 "Profile Position Mode", "Multi-Set-Point Mode") --------------------
-    def _new_set_point(self, cw: int) -> None:
-        target_reg = self._regs[1042]
-        busy = self._pp_moving and self.axis.moving
-        immediate = bool(cw & CW_CHANGE_SET_IMMEDIATELY)
-        target = None
-        if busy and immediate:
-            if self._halted or self.axis.motion.mode != 'position':
-                return      # no change during a halt or quick stop (§13 Multi-Set-Point)
-            if bool(cw & CW_RELATIVE) != self._move_relative:
-                logger.info('%s: bit 6 change ignored during a multi-set-point move', self.name)
-            target = self._move_origin + target_reg if self._move_relative else target_reg
-        elif not busy:
-            if self._regs[1044] == 0:
-                logger.info('%s: set point ignored: Profile Velocity (1044) is 0', self.name)
-                return
-            self._move_relative = bool(cw & CW_RELATIVE)
-            self._move_origin = self.axis.position_steps
-            self._move_accel = float(self._regs[1046])  # §13 1046: changes apply next move
-            target = self._move_origin + target_reg if self._move_relative else target_reg
-            if self._regs[1085] in (0, 2):
-                self._following_error = False           # §13 1086: cleared by a new PP run
-        if self._set_point.new_set_point(target, busy=busy, immediate=immediate) == \
-                cia.SetPointHandshake.IGNORED:
-            logger.info('%s: new set point ignored while moving (CW bit 5 = 0, §13 '
-                        'Multi-Set-Point)', self.name)
-            return
-        self._move_immediate = immediate
-        self._halt_released = False
-        self._pp_target = float(target)
-        direction = (target > self.axis.position_steps) - (target < self.axis.position_steps)
-        if self._blocked_by_limit(direction):
-            logger.info('%s: set point towards an active limit switch ignored', self.name)
-            return
-        self._pp_moving = True
-        self._replan_pp()
-
-    def _replan_pp(self) -> None:
-        pv = float(self._regs[1044])
-        accel = INF if pv <= START_STOP_HZ else self._move_accel   # §13 "Motion Profiles"
-        self.axis.motion.move_to(self._pp_target, pv, accel, accel)
-
-    # Profile velocity (§13 "Profile Velocity Mode") --------------------------------------------
-    def _pv_following(self) -> bool:
-        return (self.state == OE and self.mode == 3 and self._pv_started
-                and not self.controlword & CW_HALT)
-
-    def _pv_follow(self) -> None:
-        tv = float(self._regs[1048])
-        limit = self._regs[1074]
-        if limit:
-            tv = max(-limit, min(limit, tv))    # §13 "Registers 1074-1075"
-        direction = (tv > 0) - (tv < 0)
-        if self._blocked_by_limit(direction):
-            tv = 0.0
-        v = self.axis.velocity_hz
-        if abs(tv) <= START_STOP_HZ and abs(v) <= START_STOP_HZ:
-            acc = dec = INF
-        else:
-            acc, dec = float(self._regs[1046]), float(self._regs[1072])
-        self.axis.motion.run_velocity(tv, acc, dec)
-
-    # Homing (§13 "Homing Mode", T19, T26) ------------------------------------------------------
-    def _start_homing(self) -> None:
-        method = self._regs[1050]
-        self._abort_homing()
-        self._homing_attained = False
-        self._homing_error = False
-        self._following_error = False if self._regs[1085] in (0, 2) else self._following_error
-        error = ''
-        if method not in xm.HOMING_METHODS:
-            error = (f'homing method {method} is not available (available: '
-                     f'{", ".join(map(str, xm.HOMING_METHODS))})')
-        elif method in xm.HOMING_METHODS_HOME_SWITCH and self._regs[1088] & 0x01:
-            error = 'I0 is not the proximity input (1088 bit 0 = 1)'
-        elif method in xm.HOMING_METHODS_NEED_INDEX and self._regs[1085] == 17:
-            error = f'method {method} needs the encoder index (1085 = 17: no encoder)'
-        elif method not in xm.HOMING_METHODS_CURRENT_POSITION and self._regs[1054] == 0:
-            error = 'Homing Speed During Search Zero (1054-1055) is 0'
-        run = HomingRun(self.axis, method, speed_search_hz=self._regs[1052],
-                        speed_zero_hz=self._regs[1054], acceleration_hz_s=self._regs[1056],
-                        offset_steps=self._regs[1058], start_stop_hz=START_STOP_HZ,
-                        max_travel_steps=self.config.homing_max_travel_steps,
-                        on_done=self._homing_done)
-        self._homing = run
-        if error:
-            run.status = 'error'
-            run.error = error
-            self._homing_done(run)
-            return
-        run.start()
-
-    def _homing_done(self, run: HomingRun) -> None:
-        if run is not self._homing:
-            return
-        self._homing_attained = run.status == 'attained'
-        self._homing_error = run.status == 'error'
-        self._homing_message = run.error
-        logger.info('%s: homing %s%s', self.name, run.status,
-                    f': {run.error}' if run.error else '')
-
-    def _abort_homing(self) -> None:
-        if self._homing is not None and not self._homing.done:
-            self._homing.abort(self._mode_decel())
-
-    # Limit switches (§13 "Registers 1008-1009", 1088) ---------------------------------------
-    def _limit_function(self, name: str) -> bool:
-        bit = 0x02 if name == LIMIT_NEG else 0x04          # IC1 / IC2 = 0: limit switch
-        return not self._regs[1088] & bit
-
-    def _limit_active_now(self) -> bool:
-        return any(self._limit_function(n) and self.axis.input(n)
-                   for n in (LIMIT_NEG, LIMIT_POS))
-
-    def _blocked_by_limit(self, direction: int) -> bool:
-        name = LIMIT_POS if direction > 0 else LIMIT_NEG
-        return direction != 0 and self._limit_function(name) and self.axis.input(name)
-
-    def _on_axis_event(self, event: AxisEvent) -> None:
-        if event.name not in (LIMIT_NEG, LIMIT_POS) or not self._limit_function(event.name):
-            return
-        if not event.active:
-            self._limit_stop = self._limit_active_now()
-            return
-        self._limit_stop = True
-        homing = self._homing is not None and not self._homing.done
-        toward = (event.direction > 0) == (event.name == LIMIT_POS)
-        if self.axis.moving and toward and not homing:
-            self.axis.motion.stop(self._mode_decel())     # "as if Halt had been commanded"
-            self._pp_moving = False
-
-    # ------------------------------------------------------------------ faults
-    def _fault(self, code: int, now: float, persistent: bool) -> None:
-        """Transitions 13-14: current off at once, Fault, 1006/1007, alarm log."""
-        self._log_alarm(code, now)
-        self.error_register = 1
-        self.error_code = code
-        if persistent:
-            self._fault_causes.add(code)
-        self._abort_homing()
-        if not self.cia.fault(cia.CURRENT_OFF):
-            self.axis.motion.stop_immediately()     # a fault during the 1085 reaction
-        self.cia.settle()                           # current off: stopped, 14 at once
-        self._pp_moving = False
-        self._pv_started = False
-        self._set_point.reset()
-        self._following_error = False
-
-    def _log_alarm(self, code: int, now: float) -> None:
-        seconds = int(now - self.power_on_s) & 0xFFFF
-        self.alarm_log.insert(0, (seconds, code))      # A23 [R]: newest in n°0
-        del self.alarm_log[xm.ALARM_LOG_ENTRIES:]
-
-    def _fault_reset(self) -> None:
-        if self._fault_causes:
-            codes = ', '.join(f'0x{c:04X}' for c in sorted(self._fault_causes))
-            logger.info('%s: fault reset refused, cause still present (%s)', self.name, codes)
-            return
-        self.error_register = 0
-        self.error_code = 0
-        self._following_error = False
-        self.cia.fault_reset()                          # transition 15
-
-    def _following_error_event(self, now: float) -> tuple[bool, str]:
-        reaction = self._regs[1085]
-        code = 0x8611
-        if reaction == 17:
-            return False, '1085 = 17 (motor without encoder): no following error is possible'
-        if reaction == 2:
-            if self.state in (OE, QSA) and self.mode == 3 and self.axis.moving:
-                # §13 "Register 1085" 0x02 in PV: Fault Reaction Active while the motor coasts.
-                self._log_alarm(code, now)
-                self.error_register, self.error_code = 1, code
-                self._abort_homing()
-                self.cia.fault(cia.SLOW_DOWN_RAMP)      # on 1072 (cia_stop)
-                self._pv_started = False
-                return True, 'following error: FAULT REACTION ACTIVE until the motor stops'
-            self._fault(code, now, persistent=False)
-            return True, 'following error: FAULT (1085 = 2)'
-        # 1085 = 0 or 1: no fault [R: 1007 and a log entry, 1006 stays 0]
-        self._log_alarm(code, now)
-        self.error_code = code
-        self._following_error = True
-        if reaction == 0 and self.axis.moving:
-            self._abort_homing()
-            self.axis.motion.stop(self._mode_decel())
-            self._pp_moving = False
-        return True, f'following error: status word bit 13 set (1085 = {reaction}, no fault)'
-
-    def inject(self, kind: str, code: int, value: float) -> tuple[bool, str]:
-        with self._lock:
-            now = self._clock()
-            self.update(now)
-            if kind == 'drive_fault':
-                if code not in xm.ERROR_CODES or code == 0:
-                    known = ', '.join(f'0x{c:04X}' for c in xm.ERROR_CODES if c)
-                    return False, f'unknown X-PLUS MT error code 0x{code:04X}; codes: {known}'
-                if code == 0x8611:
-                    return self._following_error_event(now)
-                if code == 0x5100:
-                    self.hv_present = False
-                    self._hv_since = INF
-                if self.state != FAULT:
-                    self._fault(code, now, persistent=True)
-                else:
-                    self._fault_causes.add(code)
-                    self._log_alarm(code, now)
-                return True, (f'{self.name}: fault 0x{code:04X} '
-                              f'"{xm.ERROR_CODES[code]}" active; state {self.state}')
-            if kind == 'clear_fault':
-                causes = self._fault_causes
-                if code:
-                    causes.discard(code)
-                else:
-                    causes.clear()
-                if 0x5100 not in causes and not self.hv_present:
-                    self.hv_present, self._hv_since = True, now
-                return True, (f'{self.name}: causes cleared; a fault reset can now succeed'
-                              if self.state == FAULT else f'{self.name}: no cause active')
-            if kind == 'hv_off':
-                self.hv_present, self._hv_since = False, INF
-                if self.state in (OE, QSA):
-                    self._fault(0x5100, now, persistent=True)
-                elif self.state == FAULT:
-                    self._fault_causes.add(0x5100)
-                return True, f'{self.name}: HV off; state {self.state}'
-            if kind == 'lose_write_reply':
-                self.lose_write_reply = (int(code), int(value))
-                return True, (f'{self.name}: the next write of {int(code)} with bits '
-                              f'0x{int(value):04X} set takes effect, its reply is held '
-                              f'{LOST_REPLY_HOLD_S:g} s')
-            if kind == 'hv_on':
-                if not self.hv_present:
-                    self.hv_present, self._hv_since = True, now
-                self._fault_causes.discard(0x5100)
-                return True, (f'{self.name}: HV on; Switch On possible after '
-                              f'{HV_STABLE_S * 1000:.0f} ms')
-            return False, f'unknown kind {kind!r}'
-
-    def set_input(self, name: str, value: bool, release: bool) -> tuple[bool, str]:
-        with self._lock:
-            self.update()
-            inverted = {'I1': LIMIT_NEG, 'I2': LIMIT_POS}   # NC limit inputs: level ON = free
-            target, level = name, bool(value)
-            if name == 'I0':
-                target = HOME
-            elif name in inverted:
-                target, level = inverted[name], not value
-            elif name not in INPUT_NAMES:
-                return False, f'unknown input {name!r}; inputs: {", ".join(INPUT_NAMES)}'
-            if release:
-                self.axis.release(target)
-                return True, f'{self.name}: {name} released ({self.axis.inputs.get(target)})'
-            self.axis.set_input(target, level)
-            return True, f'{self.name}: {name} forced to {value}'
 
     # ------------------------------------------------------------------ storage
     def _load_storage(self) -> None:

@@ -177,6 +177,23 @@ class CanBus(Bus):
         logger.info('opened %s%s', self.description,
                     f', SYNC every {self.sync_period_s:g} s' if self.sync_period_s else '')
 
+    # SYNC from the bus owner (interpolated position mode): one set point per drive, then one
+    # SYNC, so a drive's two-position buffer neither runs dry (EMCY FF03) nor over.
+    def own_sync(self) -> None:
+        """The periodic SYNC producer stops; the owner sends each SYNC (send_sync)."""
+        if self.network is not None:
+            self.network.sync.stop()
+
+    def send_sync(self) -> None:
+        if self.network is not None:
+            self.network.sync.transmit()
+            self.transactions += 1
+
+    def periodic_sync(self) -> None:
+        """The periodic producer again (the drives' 0x1006 watchdog needs it)."""
+        if self.network is not None and self.sync_period_s:
+            self.network.sync.start(self.sync_period_s)
+
     def close(self) -> None:
         network, self.network = self.network, None
         if network is None:

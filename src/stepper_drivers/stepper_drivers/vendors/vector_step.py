@@ -796,6 +796,17 @@ class VectorStepDrive(Drive):
             self._homing = HomingState.IDLE
 
     # ------------------------------------------------------------------ interpolated position
+    @property
+    def interpolation_period_s(self) -> float | None:
+        """The period trajectories are streamed at: the node's SYNC period when 0x60C2 can
+        take it (1..10 ms, whole ms); None: follow trajectories point to point instead."""
+        sync_s = self.can.sync_period_s
+        low, high = vm.IP_PERIOD_UNITS
+        units = round(sync_s * 1000.0)
+        if low <= units <= high and abs(units / 1000.0 - sync_s) <= 1e-9:
+            return sync_s
+        return None
+
     def start_interpolation(self, period_s: float) -> Steps[int]:
         """Interpolated position mode (7), ready for `interpolation_point` once per SYNC period;
         returns the position it holds. Sub-mode 0x60C0 = 0 (linear), period 0x60C2, mode 7
