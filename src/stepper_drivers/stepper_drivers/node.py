@@ -10,6 +10,11 @@ turns ROS into jobs and snapshots into ROS:
   the polls they need) without holding an executor thread, so one SingleThreadedExecutor serves
   the node and a stop is never queued behind a homing.
 - The owner threads publish joint_states and status after each poll cycle of their bus.
+
+Why one file of about 820 lines: DriveNode is one rclpy Node; its interfaces, command checks,
+publishing and services share its handles, supervisors and callback groups. A split would go
+along the services and actions (`_await` .. `act_home`, about 220 lines) into a helper object like
+node_trajectory.TrajectoryInterface; the status/diagnostics publishing (~130 lines) could follow.
 """
 
 from __future__ import annotations

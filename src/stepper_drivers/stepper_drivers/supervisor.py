@@ -23,6 +23,11 @@ accepted, before anything is written; only a job submitted with `disarms=True` (
 position or homing command) that the drive confirmed disarms it. A refusal, a lost reply or a link
 loss leaves it armed; after a reconnect an expired deadline stops the drive at once. It is checked
 on the owner's clock (the loop wakes at the deadline), not once per poll.
+
+Why one file of about 710 lines: it is one owner loop; scheduling (queues, URGENT, watchdog),
+link state (connect, back-off, loss) and shutdown change the same slots, queues and futures under
+`_cv`, and the order rules above span all three. A split would go along the link lifecycle
+(`_drive_lost` .. `refuse_drive`, about 100 lines), calling back `_cut_short`/`_resolve_waiters`.
 """
 
 from __future__ import annotations
@@ -134,6 +139,7 @@ class BusSupervisor:
         self.bus = bus
         self.settings = settings
         self.slots = {n: Slot(n, d, settings['reconnect_period_s']) for n, d in drives.items()}
+        self._slot_list = list(self.slots.values())
         self.on_cycle = on_cycle or (lambda sup: None)
         self.on_connected = on_connected or (lambda sup, slot: '')
         self.on_event = on_event or self._log_event
@@ -251,53 +257,69 @@ class BusSupervisor:
         return any(s.queue and s.active is None for s in self.slots.values())
 
     def _work_once(self) -> float:
-        """Do one unit of work (one transaction or one step); return how long to sleep."""
+        """Do one unit of work (one transaction or one step); return how long to sleep.
+
+        Priorities, highest first: an urgent job; a drive found not driven; a due watchdog
+        stop; a poll overdue by a period once MAX_JOBS_BEFORE_OVERDUE_POLL jobs went first; the
+        next step of a running operation; the oldest waiting command; the next step of a poll;
+        a due reconnect; the longest-due poll. One pass over the slots (it runs before every
+        transaction: issue 9's CPU budget)."""
         now = self.clock()
-        with self._cv:
-            urgent = self._urgent.popleft() if self._urgent else None
-        if urgent is not None:
-            self._run_urgent(urgent)
-            return 0.0
+        if self._urgent:                   # (a deque's truth needs no lock; the pop does)
+            with self._cv:
+                urgent = self._urgent.popleft() if self._urgent else None
+            if urgent is not None:
+                self._run_urgent(urgent)
+                return 0.0
         self._expire_waiters(now)
-        for slot in self.slots.values():
-            if slot.not_driven and slot.connected:
-                self._drive_lost(slot, f'not driven: {slot.not_driven}')
-                return 0.0
-        for slot in self.slots.values():          # the watchdog, on its own clock
-            if slot.connected and slot.velocity_deadline is not None \
-                    and now >= slot.velocity_deadline and now >= slot.watchdog_retry_t:
-                self._watchdog_stop(slot)
-                return 0.0
-        due = sorted((s for s in self.slots.values() if s.connected
-                      and (s.active is None or s.active.polled)
-                      and now >= s.next_poll_t), key=lambda s: s.next_poll_t)
-        if due and now >= due[0].next_poll_t + self._period_s() \
-                and self._jobs_since_poll >= MAX_JOBS_BEFORE_OVERDUE_POLL:
-            self._poll_step(due[0], now)
-            return 0.0
-        for slot in self.slots.values():          # the next step of a running operation
-            if slot.active is not None and slot.active_steps is not None \
-                    and now >= slot.wake_t:
-                self._jobs_since_poll += 1
-                self._step_active(slot)
-                return 0.0
-        for slot in self._by_age():               # the oldest waiting command
-            self._jobs_since_poll += 1
-            self._start_job(slot)
-            return 0.0
-        for slot in self.slots.values():          # a poll in progress, then one due
-            if slot.poll_steps is not None and now >= slot.poll_wake_t:
-                self._poll_step(slot, now)
-                return 0.0
-        for slot in self.slots.values():   # before due polls: they may be due all the time
-            if not slot.connected and not slot.not_driven and slot.active is None \
+        due = step = poll_step = reconnect = None
+        queued = False
+        for slot in self._slot_list:
+            if slot.connected:
+                if slot.not_driven:
+                    self._drive_lost(slot, f'not driven: {slot.not_driven}')
+                    return 0.0
+                if slot.velocity_deadline is not None and now >= slot.velocity_deadline \
+                        and now >= slot.watchdog_retry_t:        # the watchdog, on its own clock
+                    self._watchdog_stop(slot)
+                    return 0.0
+                if (slot.active is None or slot.active.polled) and now >= slot.next_poll_t \
+                        and (due is None or slot.next_poll_t < due.next_poll_t):
+                    due = slot
+            elif reconnect is None and not slot.not_driven and slot.active is None \
                     and now >= slot.next_connect_t:
-                self._connect(slot)
-                return 0.0
-        if due:      # the longest due first: when polls overrun, every drive gets its turn
-            self._poll_step(due[0], now)
+                reconnect = slot
+            active = slot.active
+            if active is None:
+                if slot.queue:
+                    queued = True
+            elif step is None and slot.active_steps is not None and now >= slot.wake_t:
+                step = slot
+            if poll_step is None and slot.poll_steps is not None and now >= slot.poll_wake_t:
+                poll_step = slot
+        if due is not None and now >= due.next_poll_t + self._period_s() \
+                and self._jobs_since_poll >= MAX_JOBS_BEFORE_OVERDUE_POLL:
+            self._poll_step(due, now)
             return 0.0
-        if not any(s.connected for s in self.slots.values()) \
+        if step is not None:                      # the next step of a running operation
+            self._jobs_since_poll += 1
+            self._step_active(step)
+            return 0.0
+        if queued:
+            for slot in self._by_age():           # the oldest waiting command
+                self._jobs_since_poll += 1
+                self._start_job(slot)
+                return 0.0
+        if poll_step is not None:                 # a poll in progress, then one due
+            self._poll_step(poll_step, now)
+            return 0.0
+        if reconnect is not None:          # before due polls: they may be due all the time
+            self._connect(reconnect)
+            return 0.0
+        if due is not None:   # the longest due first: when polls overrun, every drive its turn
+            self._poll_step(due, now)
+            return 0.0
+        if not any(s.connected for s in self._slot_list) \
                 and now >= self._last_cycle_t + self._period_s():
             self._cycle()     # the DISCONNECTED status goes on at the poll rate
             return 0.0
@@ -509,6 +531,8 @@ class BusSupervisor:
         self.on_cycle(self)
 
     def _resolve_waiters(self, slot: Slot, ok: bool) -> None:
+        if not slot.poll_waiters:          # the usual case: no lock taken
+            return
         with self._cv:
             waiters, slot.poll_waiters = slot.poll_waiters, []
         for _, callback in waiters:

@@ -13,6 +13,11 @@ Two layers, no rclpy below `main()`:
 
 Behaviour the manual leaves open is decided as in the spec's best readings (spec/lika_rd4.md §10),
 most of them switchable (see `Rd4Options`); docs/rd4.md lists them.
+
+Why one file of about 810 lines: no shared state needs it: RtuLine uses only a unit's node_id,
+handle(), update() and frame_received(); Rd4Unit's parts (map, Control Word, motion, alarms,
+flash) share its register image. A split would follow xplus_mt_device.py: Rd4Options and Rd4Unit
+(about 470 lines) into rd4_device.py; RtuLine, the backend and build() stay here.
 """
 
 from __future__ import annotations

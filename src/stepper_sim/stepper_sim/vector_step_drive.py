@@ -16,8 +16,10 @@ two-position buffer 0x60C1 (filled by SDO or RxPDO), the start once IP is enable
 elements are written, one linear segment per SYNC (`ip_on_sync`, called by vector_step_pdo's
 `on_sync`) over the period of 0x60C2, and the EMCYs FF03 (underflow), FF04/FF05 (SYNC early/late).
 
-Over 600 lines: one drive application whose parts (modes, alarms, storage) share the object
-dictionary and axis; the protocol layers are already apart (vector_step_nmt/_sdo/_pdo).
+Why one file of about 810 lines: one drive application; modes, alarms and storage all read and
+write the same object dictionary, CiA 402 state and SimAxis (NMT, SDO and PDO are already apart
+in vector_step_nmt/_sdo/_pdo). A split would follow xplus_mt_modes.py: the mode handlers (JOG,
+homing, interpolated position `_ip_*`/`ip_on_sync`, about 250 lines) into a mixin.
 """
 
 from __future__ import annotations

@@ -33,6 +33,11 @@ How the contract maps to the RD4 (docs/rd4.md has the full table):
 - stop: Stop (bit 2) low, restored at standstill; quick stop: Emergency (bit 7) low.
 - home: the RD4 has no homing run: Preset [0x16-0x17] := homing.offset and a rising edge of
   Perform counting preset (bit 11), so it is right whether the register write or the edge applies.
+
+Why one file of about 890 lines: every Rd4Drive operation composes its Control Word from the same
+intent (enabled, Start/Jog, Stop low, outputs, epoch) and relies on the same examined machine
+data, so the class stays whole. What should move out: the vendor description (PARAMS .. validate,
+about 100 lines) into vendors/rd4_params.py, then the pure identity and range checks.
 """
 
 from __future__ import annotations

@@ -24,6 +24,11 @@ refuses mode 7 because 0x6502 lacks bit 6, and it waits for a "periodic" TxPDO t
 event-driven TxPDO seen twice looks like), its `controlword` setter (it would send RxPDO1 with a
 stale mode byte 0), `homing()` (the AEC method numbers are not the library's, bit 10 during homing
 is not documented) and `reset_from_fault()` (the manual clears 0x1003 first). No rclpy.
+
+Why one file of about 1080 lines: every command rides on an RxPDO that carries the controlword
+with the mode or the target (`_write_controlword`), and connect maps those same PDOs, so boot,
+state machine, motion and interpolation share one PDO image. A split would go along the boot
+(connect .. `_seed`, about 210 lines) into vendors/vector_step_boot.py, then the vendor params.
 """
 
 from __future__ import annotations

@@ -7,6 +7,11 @@ the CiA 402 state machine in `cia402.py`. No rclpy.
 Operations that wait (enable, disable, fault_reset, move_to, set_velocity, start_homing,
 save_params) are step-wise (`drive.Steps`): they yield between transactions, so the bus owner
 serves the other drives meanwhile. connect, read_state and stop are one short burst each.
+
+Why one file of about 720 lines: every XplusMtDrive operation shares one Modbus client, the
+Cia402Device handshake and the driver's own record (homed, current-on time, watchdog armed), so
+the class stays whole. What should move out is the vendor description (PARAMS, the `_check_*`
+rules, validate: about 110 lines) into a vendors/xplus_mt_params.py, for all four vendors alike.
 """
 
 from __future__ import annotations
