@@ -17,12 +17,14 @@ from stepper_drivers_msgs.action import FollowJointTrajectory
 from stepper_drivers_msgs.msg import DriveStatus, JointTolerance
 from test_rd4_ros import Bench as Rd4Bench
 from test_vector_step_ros import Rig as VectorRig
+from test_xmind_k_ros import Bench as XmindBench
 from test_xplus_mt_ros import Bench as XplusBench
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 RD4_STEPS_PER_RAD = 1024 / (2 * math.pi)
 XPLUS_STEPS_PER_RAD = 12800 / (2 * math.pi)
 VECTOR_STEPS_PER_RAD = 3200 / (2 * math.pi)
+XMIND_STEPS_PER_RAD = 2000 / (2 * math.pi)
 
 
 def trajectory(joints, points):
@@ -226,3 +228,32 @@ def test_vector_step_point_to_point_with_the_default_sync_period(tmp_path):
             assert arrived[d] - t0 >= 1.0 - Track.SAMPLE_S
     finally:
         rig.close()
+
+
+class XmindLineBench(XmindBench):
+    """Three X-MIND K on one 9600-baud line with the simulator's line timing, polled at 5 Hz
+    (config/xmind_k.yaml): moves go out one after the other, some 130 ms each."""
+
+    node_extra_args = ('-p', 'timeout_s:=0.25')
+
+    def __init__(self, procs, ros, tmp_path):
+        super().__init__(procs, ros, tmp_path, line_timing=True)
+
+
+def test_xmind_k_axes_on_one_slow_line_arrive_together(procs, ros, tmp_path):
+    bench = XmindLineBench(procs, ros, tmp_path)
+    rate_hz, transaction_s = 5.0, 0.06       # config publish_rate_hz; a status string at 9600
+    for d in ('axis1', 'axis2'):
+        bench.enable(d)
+    tracks = {d: Track(ros, bench.true_topic(d)) for d in ('axis1', 'axis2')}
+    t0 = time.monotonic()
+    # 4775 and 6366 steps in 1.5 s: above 3000 Hz, where the drive's frequency steps are 100 Hz
+    ros.publish(JointTrajectory, '/xmind_k_node/joint_trajectory',
+                trajectory(['xmind_joint1', 'xmind_joint2'], [(1.5, [15.0, 20.0])]))
+    arrived = {d: tracks[d].wait_still(0.4, 10.0, f'{d} at rest') for d in tracks}
+    for d, rad in (('axis1', 15.0), ('axis2', 20.0)):
+        assert bench.fresh_true_steps(d) == pytest.approx(rad * XMIND_STEPS_PER_RAD, abs=1)
+    spread = abs(arrived['axis1'] - arrived['axis2'])
+    assert spread <= 1 / rate_hz + transaction_s + Track.SAMPLE_S, spread
+    for d in tracks:
+        assert arrived[d] - t0 >= 1.5 - Track.SAMPLE_S, (d, arrived[d] - t0)
