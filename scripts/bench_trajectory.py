@@ -43,7 +43,7 @@ following (DriveStatus.mode) and any node log line about interpolation are repor
 
 Run: source scripts/env.sh && python scripts/bench_trajectory.py [--vendor rd4 ...]
      [--trajectories N] [--sample-rate HZ] [--band F] [--vector-sync-period [S ...]]
-     [--json out.json]            (everything: about 3 minutes)
+     [--json out.json]            (everything: about 100 s)
 """
 
 from __future__ import annotations

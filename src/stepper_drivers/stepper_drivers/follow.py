@@ -9,12 +9,14 @@ Threads and what they own:
 
 How the axes arrive together (trajectory.py has the plan): at each segment's start time every
 moving axis gets one move job. Inside the job, in the owner thread, the profile is computed again
-for the time that is really left (the segment's end minus now): an axis whose job started late,
-behind other drives' jobs on a serial line, moves a little faster and arrives with the others.
-Each arrives later than the point's time by its drive's own start-up (the transactions of its
-move_to before the set point: on a serial line tens of milliseconds), the same for drives of one
-kind. If the time left is too short within the joint's limits, it keeps the planned profile and
-arrives late (the goal tolerance decides).
+for the time that is really left: the segment's end minus now minus the axis's lead (what its
+drive's move took the times before: the checks and writes before the drive runs, tens of ms on
+a serial line). An axis whose job starts late, behind other drives' jobs on one line, moves
+faster and arrives with the others: with the planned ramp time when its limits allow, else with
+the shortest ramp its max_acceleration allows; only when neither fits does it arrive late (the
+goal tolerance decides). A move job first waits for the segment before to end on its axis (a
+late axis): a drive that cannot take a new target while it runs (X-MIND K) would stop short and
+start again.
 """
 
 from __future__ import annotations
@@ -29,11 +31,15 @@ from typing import Callable
 
 from .drive import Drive, Motion, is_steps
 from .supervisor import COMMAND, URGENT, BusSupervisor
-from .trajectory import JointLimits, Segment, Trajectory, TrajectoryError, plan
+from .trajectory import JointLimits, Segment, Trajectory, TrajectoryError, plan, trapezoid
 
 logger = logging.getLogger(__name__)
 
 TICK_S = 0.02                 # how often a run checks tolerances and cancellation
+WAIT_STANDSTILL_S = 0.005     # a move job waiting for the segment before to end polls this often
+LEAD_SMOOTHING = 0.5          # weight of the newest measured lead of a move
+LEAD_MAX_S = 0.5              # a lead measured longer than this (a busy line) counts as this
+STREAM_PREPARE_S = 0.3        # interpolated axes: mode 7 set up before a trajectory for now
 GOAL_WAIT_MAX_S = 10.0        # without a goal_time_tolerance: the longest wait for standstill
 # An interpolated axis is where its set point was this many SYNC periods ago: the point written
 # at a tick waits in the buffer behind the one before, is taken at the next tick's SYNC and
@@ -59,6 +65,7 @@ class Axis:
     sup: BusSupervisor
     drive: Drive
     limits: JointLimits
+    lead_s: float = 0.0     # learned: a move's own transactions before the drive runs
 
     def position_steps(self) -> float:
         return float(self.sup.slots[self.drive_name].state.position_steps)
@@ -155,6 +162,10 @@ class Run:
     def _follow(self) -> Outcome:
         clock = self.follower.clock
         previous = dict(self.start_steps)
+        # interpolated axes: the stream starts now, holding them, so they are in mode 7 when
+        # the first segment begins
+        self._streams = self.follower.stream(self)
+        self._jobs += self._streams
         for seg in self.segments:
             seg_t = self.start_t + seg.start_s
             if self._replaced_at is not None and seg_t >= self._replaced_at:
@@ -164,9 +175,6 @@ class Run:
                 return problem
             if self._replaced_at is not None and clock() >= self._replaced_at:
                 return _aborted(SUCCESSFUL, REPLACED)
-            if seg is self.segments[0]:
-                self._streams = self.follower.stream(self)   # interpolated axes, if any
-                self._jobs += self._streams
             for move in seg.moves:
                 if move.joint in self.streamed:
                     continue
@@ -174,7 +182,8 @@ class Run:
                 self._jobs.append(axis.sup.submit(
                     axis.drive_name, COMMAND,
                     self._move_job(axis, move, previous[move.joint], self.start_t + seg.end_s),
-                    f'trajectory segment to {move.target_steps:g} steps', disarms=True))
+                    f'trajectory segment to {move.target_steps:g} steps', disarms=True,
+                    polled=True))
                 previous[move.joint] = move.target_steps
         problem = self._wait_until(self.end_t)
         if problem is not None:
@@ -206,32 +215,46 @@ class Run:
         clock = self.follower.clock
 
         def job():
-            v, a = self._retimed(axis, move, from_steps, end_t - clock())
+            # The segment before may still run (an axis that arrived late): a drive that
+            # cannot take a new target while it moves would stop short and start again.
+            # The drive is polled between these steps (polled=True).
+            while axis.moving() and clock() < end_t:
+                yield WAIT_STANDSTILL_S
+            t0 = clock()
+            v, a = self._retimed(axis, move, from_steps, end_t - t0 - axis.lead_s)
             if math.isinf(a):                    # start-stop: the drive ignores the ramp
                 a = axis.limits.max_acceleration_steps_s2
             result = axis.drive.move_to(int(round(move.target_steps)), Motion(v, a, a))
             if is_steps(result):
                 result = yield from result
+            # its move's own transactions (checks, writes) before the drive runs: learned
+            axis.lead_s += LEAD_SMOOTHING * (min(clock() - t0, LEAD_MAX_S) - axis.lead_s)
             return result
         return job
 
     @staticmethod
     def _retimed(axis: Axis, move, from_steps: float, left_s: float) -> tuple[float, float]:
-        """The segment's profile for the time really left, with the planned ramp time (so the
-        axes keep their proportions); the planned profile when that would break a limit."""
+        """The segment's profile for the time really left: with the planned ramp time (the
+        axes keep their proportions) when that fits the joint's limits, else the shortest ramp
+        its max_acceleration allows (it still arrives with the others), else the planned
+        profile (it arrives late)."""
         planned = (move.velocity_steps_s, move.acceleration_steps_s2)
         d = abs(move.target_steps - from_steps)
-        ramp_s = 0.0 if math.isinf(planned[1]) else planned[0] / planned[1]
-        if left_s <= 2 * ramp_s or left_s <= 0:
-            return planned
-        v = d / (left_s - ramp_s)
-        a = v / ramp_s if ramp_s > 0 else math.inf
         lim = axis.limits
-        if v > lim.max_velocity_steps_s or (ramp_s > 0 and a > lim.max_acceleration_steps_s2):
+        if left_s <= 0 or d == 0:
             return planned
-        if ramp_s == 0 and v > lim.start_stop_steps_s:
-            return planned          # faster would make the drive ramp: later, not earlier
-        return v, a
+        ramp_s = 0.0 if math.isinf(planned[1]) else planned[0] / planned[1]
+        if ramp_s == 0:
+            v = d / left_s
+            # faster than start-stop would make the drive ramp: later, not earlier
+            return (v, math.inf) if v <= min(lim.start_stop_steps_s,
+                                             lim.max_velocity_steps_s) else planned
+        if left_s > 2 * ramp_s:
+            v = d / (left_s - ramp_s)
+            if v <= lim.max_velocity_steps_s and v / ramp_s <= lim.max_acceleration_steps_s2:
+                return v, v / ramp_s
+        fastest = trapezoid(d, left_s, lim.max_velocity_steps_s, lim.max_acceleration_steps_s2)
+        return planned if isinstance(fastest, str) else fastest
 
     def _wait_until(self, t: float) -> Outcome | None:
         clock = self.follower.clock
@@ -323,6 +346,12 @@ class Follower:
             ago = now - start_t - traj.points[-1].time_s
             raise TrajectoryError(f'the trajectory ended {ago:.3f} s ago (header.stamp plus '
                                   'the last time_from_start)')
+        if any(getattr(self.axes[j].drive, 'interpolation_period_s', None)
+               for j in traj.joints) and start_t < now + STREAM_PREPARE_S \
+                and (self.current is None or self.current.done.done()):
+            # interpolated axes need their drives in mode 7 before the first point: a
+            # trajectory for now starts STREAM_PREPARE_S later, on every axis alike
+            start_t = now + STREAM_PREPARE_S
         with self._lock:
             old = self.current
             take_over = max(start_t, now)

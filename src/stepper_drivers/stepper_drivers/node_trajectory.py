@@ -50,10 +50,15 @@ class TrajectoryInterface:
         for joint, h in self.node.by_joint.items():
             to = h.conv.to_steps
             lo, hi = sorted((to(h.param('min_position')), to(h.param('max_position'))))
-            axes[joint] = Axis(joint, h.name, h.sup, h.drive, JointLimits(
+            limits = JointLimits(
                 lo, hi, abs(to(h.param('max_velocity'))), abs(to(h.param('max_acceleration'))),
                 h.conv.steps_per_unit, h.cfg.params.get('unit', 'rad'),
-                h.drive.start_stop_steps_s))
+                h.drive.start_stop_steps_s)
+            axis = Axis(joint, h.name, h.sup, h.drive, limits)
+            old = self.follower.axes.get(joint)
+            if old is not None and old.drive is h.drive:
+                axis.lead_s = old.lead_s            # what its moves took so far
+            axes[joint] = axis
         return axes
 
     def _trajectory(self, msg: JointTrajectory) -> Trajectory:

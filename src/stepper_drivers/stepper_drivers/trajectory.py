@@ -25,6 +25,9 @@ from typing import Sequence
 # half). A segment within this fraction of that bound is refused too: the drives quantize the
 # profile, and a profile at the very edge would arrive late.
 EDGE_MARGIN = 0.98
+# The plan's ramps use this much of each joint's max_acceleration when the segment allows, so an
+# axis whose move goes out late (behind others on one serial line) can still catch up.
+PLAN_FRACTIONS = (0.7, EDGE_MARGIN)
 
 
 class TrajectoryError(ValueError):
@@ -125,7 +128,9 @@ def ramp_time(distance_steps: float, duration_s: float, acceleration_steps_s2: f
 
 
 def segment_profiles(distances: dict[str, float], duration_s: float,
-                     limits: dict[str, JointLimits]) -> dict[str, tuple[float, float]] | str:
+                     limits: dict[str, JointLimits],
+                     fractions: tuple[float, ...] = (EDGE_MARGIN,)
+                     ) -> dict[str, tuple[float, float]] | str:
     """(velocity, acceleration) per moving joint for one segment, or the reason it cannot.
 
     Every axis gets the same ramp time t_r (the longest any of them needs within its
@@ -133,6 +138,8 @@ def segment_profiles(distances: dict[str, float], duration_s: float,
     axes keep their proportions all the way and the path between two points is a straight line,
     not a dog-leg. v_i = d_i / (T - t_r), a_i = v_i / t_r. When every axis can run start-stop
     (X-PLUS MT at or below its start-stop velocity) there are no ramps: v_i = d_i / T.
+    `fractions` of each joint's max_acceleration are tried in turn: the plan leaves headroom
+    (PLAN_FRACTIONS) that an axis whose move goes out late uses to catch up.
     """
     moving = {j: abs(d) for j, d in distances.items() if d != 0}
     if not moving:
@@ -141,10 +148,19 @@ def segment_profiles(distances: dict[str, float], duration_s: float,
     if all(d / T <= min(limits[j].start_stop_steps_s, limits[j].max_velocity_steps_s)
            for j, d in moving.items()):
         return {j: (d / T, math.inf) for j, d in moving.items()}
+    for fraction in fractions[:-1]:
+        found = _common_ramp(moving, T, limits, fraction)
+        if not isinstance(found, str):
+            return found
+    return _common_ramp(moving, T, limits, fractions[-1])
+
+
+def _common_ramp(moving: dict[str, float], T: float, limits: dict[str, JointLimits],
+                 fraction: float) -> dict[str, tuple[float, float]] | str:
     t_r = 0.0
     for j, d in moving.items():
         a = limits[j].max_acceleration_steps_s2
-        t_j = ramp_time(d, T, a * EDGE_MARGIN)
+        t_j = ramp_time(d, T, a * fraction)
         if math.isinf(t_j):
             need = 4 * d / T ** 2 / EDGE_MARGIN
             return (f'{j}: needs an acceleration of at least {need:.4g} steps/s^2 to cover '
@@ -181,7 +197,7 @@ def plan(traj: Trajectory, start_steps: dict[str, float], limits: dict[str, Join
                     f'outside min_position..max_position ({lim.min_steps / lim.steps_per_unit:g}'
                     f'..{lim.max_steps / lim.steps_per_unit:g} {lim.unit})')
         profiles = segment_profiles({j: targets[j] - previous[j] for j in traj.joints},
-                                    point.time_s - t0, limits)
+                                    point.time_s - t0, limits, PLAN_FRACTIONS)
         if isinstance(profiles, str):
             joint, why = profiles.split(': ', 1)
             raise TrajectoryError(f'{joint}: segment to point {k} ({t0:g} s to '

@@ -122,3 +122,22 @@ def test_an_empty_trajectory_stops_the_running_one(rig):
     assert outcome.status == 'canceled'
     wait_for(lambda: not any(s.state.moving for s in sup.slots.values()), 2.0, 'standstill')
     assert abs(true_steps(sim, 'j1')) < 30_000
+
+
+def test_a_move_sent_late_catches_up_within_the_joints_limits():
+    """RD4, seen in the trajectory benchmark: the second unit's move went out 130 ms after the
+    first one's on the shared line, with the larger distance; it kept its planned profile and
+    arrived 114 ms late. Now it runs faster (within max_velocity and max_acceleration) for the
+    time left."""
+    from stepper_drivers.follow import Run
+    from stepper_drivers.trajectory import plan as plan_
+    lim = JointLimits(-1e6, 1e6, 1600.0, 10_000.0)
+    traj = build(['a', 'b'], [1.5], [[250, 250]], known=['a', 'b'])
+    (seg,) = plan_(traj, {'a': 0.0, 'b': 0.0}, {'a': lim, 'b': lim})
+    move = seg.moves[1]
+    axis = Axis('b', 'axis2', None, None, lim)
+    v, a = Run._retimed(axis, move, 0.0, 1.5 - 0.13)
+    assert v <= lim.max_velocity_steps_s and a <= lim.max_acceleration_steps_s2
+    ramp = v / a
+    assert v * (1.37 - ramp) == pytest.approx(250)              # covers it in the time left
+    assert v > move.velocity_steps_s

@@ -116,3 +116,11 @@ def test_start_stop_drives_move_without_ramps_when_every_axis_can():
                   {'a': 0.0, 'b': 0.0}, {'a': ss, 'b': ss})
     assert {(m.joint, m.velocity_steps_s, m.acceleration_steps_s2) for m in seg.moves} == \
         {('a', 8000.0, math.inf), ('b', 4000.0, math.inf)}
+
+
+def test_the_plan_leaves_acceleration_headroom_when_the_segment_allows():
+    (seg,) = plan(build(['a'], [1.0], [[1000]], known=['a']), {'a': 0.0}, {'a': LIM})
+    (m,) = seg.moves
+    assert m.acceleration_steps_s2 == pytest.approx(0.7 * 20000.0)
+    assert profile_distance(m.velocity_steps_s, m.acceleration_steps_s2, 1.0) == \
+        pytest.approx(1000)
