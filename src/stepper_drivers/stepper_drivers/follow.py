@@ -14,9 +14,8 @@ drive's move took the times before: the checks and writes before the drive runs,
 a serial line). An axis whose job starts late, behind other drives' jobs on one line, moves
 faster and arrives with the others: with the planned ramp time when its limits allow, else with
 the shortest ramp its max_acceleration allows; only when neither fits does it arrive late (the
-goal tolerance decides). A move job first waits for the segment before to end on its axis (a
-late axis): a drive that cannot take a new target while it runs (X-MIND K) would stop short and
-start again.
+goal tolerance decides). A late axis's move waits for the segment before to end on its axis: a
+drive that cannot take a new target while it runs (X-MIND K) would stop short and start again.
 """
 
 from __future__ import annotations
@@ -36,7 +35,7 @@ from .trajectory import JointLimits, Segment, Trajectory, TrajectoryError, plan,
 logger = logging.getLogger(__name__)
 
 TICK_S = 0.02                 # how often a run checks tolerances and cancellation
-WAIT_STANDSTILL_S = 0.005     # a move job waiting for the segment before to end polls this often
+WAIT_STANDSTILL_S = 0.005     # a late axis's move waits for the segment before: checked this often
 LEAD_SMOOTHING = 0.5          # weight of the newest measured lead of a move
 LEAD_MAX_S = 0.5              # a lead measured longer than this (a busy line) counts as this
 STREAM_PREPARE_S = 0.3        # interpolated axes: mode 7 set up before a trajectory for now
@@ -175,16 +174,26 @@ class Run:
                 return problem
             if self._replaced_at is not None and clock() >= self._replaced_at:
                 return _aborted(SUCCESSFUL, REPLACED)
-            for move in seg.moves:
-                if move.joint in self.streamed:
-                    continue
-                axis = self.follower.axes[move.joint]
-                self._jobs.append(axis.sup.submit(
-                    axis.drive_name, COMMAND,
-                    self._move_job(axis, move, previous[move.joint], self.start_t + seg.end_s),
-                    f'trajectory segment to {move.target_steps:g} steps', disarms=True,
-                    polled=True))
-                previous[move.joint] = move.target_steps
+            # An axis whose segment before still runs (it arrived late) gets its move once it
+            # stands: a drive that cannot take a new target while it moves (X-MIND K) would
+            # stop short and start again. The moves of the others go out at once, back to back.
+            end_t = self.start_t + seg.end_s
+            waiting = [m for m in seg.moves if m.joint not in self.streamed]
+            while waiting:
+                for move in [m for m in waiting if not self.follower.axes[m.joint].moving()
+                             or clock() >= end_t]:
+                    axis = self.follower.axes[move.joint]
+                    self._jobs.append(axis.sup.submit(
+                        axis.drive_name, COMMAND,
+                        self._move_job(axis, move, previous[move.joint], end_t),
+                        f'trajectory segment to {move.target_steps:g} steps', disarms=True))
+                    previous[move.joint] = move.target_steps
+                    waiting.remove(move)
+                if waiting:
+                    problem = self._check()
+                    if problem is not None:
+                        return problem
+                    self._cancel.wait(WAIT_STANDSTILL_S)
         problem = self._wait_until(self.end_t)
         if problem is not None:
             return problem
@@ -215,11 +224,6 @@ class Run:
         clock = self.follower.clock
 
         def job():
-            # The segment before may still run (an axis that arrived late): a drive that
-            # cannot take a new target while it moves would stop short and start again.
-            # The drive is polled between these steps (polled=True).
-            while axis.moving() and clock() < end_t:
-                yield WAIT_STANDSTILL_S
             t0 = clock()
             v, a = self._retimed(axis, move, from_steps, end_t - t0 - axis.lead_s)
             if math.isinf(a):                    # start-stop: the drive ignores the ramp
