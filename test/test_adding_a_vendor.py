@@ -96,6 +96,7 @@ def test_both_setup_py_make_the_console_scripts_from_the_row(toy):
     drivers = console_scripts(tmp / 'src/stepper_drivers/setup.py')
     sims = console_scripts(tmp / 'src/stepper_sim/setup.py')
     assert drivers['toy_node'] == 'stepper_drivers.entry_points:toy_node'
+    assert drivers['toy_lifecycle_node'] == 'stepper_drivers.entry_points:toy_lifecycle_node'
     assert sims['toy_sim'] == 'stepper_sim.toy_sim:main'
     # and without the row, as the workspace is
     assert 'toy_node' not in console_scripts(ROOT / 'src/stepper_drivers/setup.py')
@@ -142,6 +143,7 @@ def installed(toy, monkeypatch):
 def test_the_executable_and_stepperctl_know_the_vendor(installed):
     _tmp, _toy, _sim, (entry_points, scan, main) = installed
     assert callable(entry_points.toy_node) and entry_points.toy_node.__name__ == 'toy_node'
+    assert callable(entry_points.toy_lifecycle_node)
     assert scan.NODE_NAMES['toy'] == 'toy_node' and scan.ADDRESS_NAMES['toy'] == 'address'
     assert 'toy' not in scan.SCANNERS            # no scan_help: no scanner needed
     args = main.build_parser().parse_args(['scan', 'rd4', '--port', 'x'])
@@ -198,6 +200,8 @@ def test_the_launch_file_starts_the_node_and_with_sim_true_the_simulator(toy, mo
     assert tl.ros2_launch('toy.launch.py', sources) == {'toy_node': ['config/toy.yaml']}
     assert tl.ros2_launch('toy.launch.py', sources, sim='true') == {
         'toy_sim': ['config/toy_sim.yaml'], 'toy_node': ['config/toy.yaml']}
+    assert tl.ros2_launch('toy.launch.py', sources, lifecycle='true') == {
+        'toy_lifecycle_node': ['config/toy.yaml']}
     node_p, sim_p = (next(iter(yaml.safe_load((config / n).read_text()).values()))
                      ['ros__parameters'] for n in ('toy.yaml', 'toy_sim.yaml'))
     assert node_p['port'] == sim_p['port']
