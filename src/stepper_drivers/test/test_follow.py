@@ -141,3 +141,17 @@ def test_a_move_sent_late_catches_up_within_the_joints_limits():
     ramp = v / a
     assert v * (1.37 - ramp) == pytest.approx(250)              # covers it in the time left
     assert v > move.velocity_steps_s
+
+
+def test_a_path_tolerance_violated_stops_the_axes_and_names_the_joint(rig):
+    """1 step of path tolerance while j1 runs at 16000 steps/s: its polled position is behind the
+    plan by more than that within one poll period; the run aborts and the axes stop short."""
+    from stepper_drivers.follow import PATH_TOLERANCE_VIOLATED, Tolerances
+    sim, sup, follower = rig
+    run = follower.follow(build(JOINTS, [2.0], [[32_000, 0]], known=JOINTS),
+                          tol=Tolerances(path_steps={'j1': 1.0}))
+    outcome = run.done.result(2.0)
+    assert outcome.code == PATH_TOLERANCE_VIOLATED and outcome.text.startswith('j1: ')
+    assert 'path tolerance 1 steps' in outcome.text
+    wait_for(lambda: not any(s.state.moving for s in sup.slots.values()), 2.0, 'standstill')
+    assert true_steps(sim, 'j1') < 32_000 - 1000
