@@ -66,6 +66,12 @@ class Axis:
     limits: JointLimits
     lead_s: float = 0.0     # learned: a move's own transactions before the drive runs
 
+    @property
+    def interpolated(self) -> bool:
+        """Its drive follows a stream of set points (Vector Step interpolated position at
+        these settings), not point-to-point moves."""
+        return bool(getattr(self.drive, 'interpolation_period_s', None))
+
     def position_steps(self) -> float:
         return float(self.sup.slots[self.drive_name].state.position_steps)
 
@@ -122,8 +128,7 @@ class Run:
             self.final_steps.update(zip(traj.joints, point.positions_steps))
         # joints whose drive follows a stream of set points (Vector Step interpolated
         # position) rather than point-to-point moves
-        self.streamed = {j for j in traj.joints
-                         if getattr(follower.axes[j].drive, 'interpolation_period_s', None)}
+        self.streamed = {j for j in traj.joints if follower.axes[j].interpolated}
         self._thread = threading.Thread(target=self._run, name='trajectory', daemon=True)
 
     # ------------------------------------------------------------------------ other threads
@@ -350,8 +355,8 @@ class Follower:
             ago = now - start_t - traj.points[-1].time_s
             raise TrajectoryError(f'the trajectory ended {ago:.3f} s ago (header.stamp plus '
                                   'the last time_from_start)')
-        if any(getattr(self.axes[j].drive, 'interpolation_period_s', None)
-               for j in traj.joints) and start_t < now + STREAM_PREPARE_S \
+        if any(self.axes[j].interpolated for j in traj.joints) \
+                and start_t < now + STREAM_PREPARE_S \
                 and (self.current is None or self.current.done.done()):
             # interpolated axes need their drives in mode 7 before the first point: a
             # trajectory for now starts STREAM_PREPARE_S later, on every axis alike
@@ -374,12 +379,12 @@ class Follower:
                 # stop at the take-over (JointTrajectoryController holds them the same way)
                 held = [j for j in old.traj.joints if j not in traj.joints]
                 if held:
-                    self._stop_later(old, held, take_over)
+                    self._stop_later(held, take_over)
             self.current = run
         run._thread.start()
         return run
 
-    def _stop_later(self, old: Run, joints: list[str], t: float) -> None:
+    def _stop_later(self, joints: list[str], t: float) -> None:
         def stop():
             for j in joints:
                 self.stop_axis(self.axes[j], 'held: not in the newer trajectory')

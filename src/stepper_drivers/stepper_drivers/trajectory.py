@@ -107,6 +107,14 @@ def build(joints: Sequence[str], times_s: Sequence[float],
     return Trajectory(tuple(joints), tuple(points))
 
 
+@dataclasses.dataclass(frozen=True)
+class Unreachable:
+    """A segment a joint cannot make within its limits: which joint, and why."""
+
+    joint: str
+    why: str
+
+
 def trapezoid(distance_steps: float, duration_s: float, max_velocity_steps_s: float,
               max_acceleration_steps_s2: float, start_stop_steps_s: float = 0.0
               ) -> tuple[float, float] | str:
@@ -116,8 +124,8 @@ def trapezoid(distance_steps: float, duration_s: float, max_velocity_steps_s: fl
     profiles = segment_profiles({'': distance_steps}, duration_s, {'': JointLimits(
         -math.inf, math.inf, max_velocity_steps_s, max_acceleration_steps_s2,
         start_stop_steps_s=start_stop_steps_s)})
-    return profiles.get('', (0.0, max_acceleration_steps_s2)) if isinstance(profiles, dict) \
-        else profiles.split(': ', 1)[1]
+    return profiles.why if isinstance(profiles, Unreachable) else \
+        profiles.get('', (0.0, max_acceleration_steps_s2))
 
 
 def ramp_time(distance_steps: float, duration_s: float, acceleration_steps_s2: float) -> float:
@@ -130,8 +138,9 @@ def ramp_time(distance_steps: float, duration_s: float, acceleration_steps_s2: f
 def segment_profiles(distances: dict[str, float], duration_s: float,
                      limits: dict[str, JointLimits],
                      fractions: tuple[float, ...] = (EDGE_MARGIN,)
-                     ) -> dict[str, tuple[float, float]] | str:
-    """(velocity, acceleration) per moving joint for one segment, or the reason it cannot.
+                     ) -> dict[str, tuple[float, float]] | Unreachable:
+    """(velocity, acceleration) per moving joint for one segment, or which joint cannot and
+    why.
 
     Every axis gets the same ramp time t_r (the longest any of them needs within its
     max_acceleration): each one's profile is then the same curve scaled by its distance, so the
@@ -150,28 +159,30 @@ def segment_profiles(distances: dict[str, float], duration_s: float,
         return {j: (d / T, math.inf) for j, d in moving.items()}
     for fraction in fractions[:-1]:
         found = _common_ramp(moving, T, limits, fraction)
-        if not isinstance(found, str):
+        if not isinstance(found, Unreachable):
             return found
     return _common_ramp(moving, T, limits, fractions[-1])
 
 
 def _common_ramp(moving: dict[str, float], T: float, limits: dict[str, JointLimits],
-                 fraction: float) -> dict[str, tuple[float, float]] | str:
+                 fraction: float) -> dict[str, tuple[float, float]] | Unreachable:
     t_r = 0.0
     for j, d in moving.items():
         a = limits[j].max_acceleration_steps_s2
         t_j = ramp_time(d, T, a * fraction)
         if math.isinf(t_j):
             need = 4 * d / T ** 2 / EDGE_MARGIN
-            return (f'{j}: needs an acceleration of at least {need:.4g} steps/s^2 to cover '
-                    f'{d:.6g} steps in {T:g} s (max_acceleration is {a:.4g} steps/s^2)')
+            return Unreachable(j, f'needs an acceleration of at least {need:.4g} steps/s^2 to '
+                               f'cover {d:.6g} steps in {T:g} s (max_acceleration is {a:.4g} '
+                               'steps/s^2)')
         t_r = max(t_r, t_j)
     out = {}
     for j, d in moving.items():
         v = d / (T - t_r)
         if v > limits[j].max_velocity_steps_s:
-            return (f'{j}: needs {v:.4g} steps/s to cover {d:.6g} steps in {T:g} s (max_velocity '
-                    f'is {limits[j].max_velocity_steps_s:.4g} steps/s)')
+            return Unreachable(j, f'needs {v:.4g} steps/s to cover {d:.6g} steps in {T:g} s '
+                               f'(max_velocity is {limits[j].max_velocity_steps_s:.4g} '
+                               'steps/s)')
         out[j] = (v, v / t_r if t_r > 0 else math.inf)
     return out
 
@@ -198,10 +209,9 @@ def plan(traj: Trajectory, start_steps: dict[str, float], limits: dict[str, Join
                     f'..{lim.max_steps / lim.steps_per_unit:g} {lim.unit})')
         profiles = segment_profiles({j: targets[j] - previous[j] for j in traj.joints},
                                     point.time_s - t0, limits, PLAN_FRACTIONS)
-        if isinstance(profiles, str):
-            joint, why = profiles.split(': ', 1)
-            raise TrajectoryError(f'{joint}: segment to point {k} ({t0:g} s to '
-                                  f'{point.time_s:g} s) {why}')
+        if isinstance(profiles, Unreachable):
+            raise TrajectoryError(f'{profiles.joint}: segment to point {k} ({t0:g} s to '
+                                  f'{point.time_s:g} s) {profiles.why}')
         moves = tuple(AxisMove(j, targets[j], *profiles[j]) for j in traj.joints
                       if j in profiles)
         segments.append(Segment(t0, point.time_s, moves))

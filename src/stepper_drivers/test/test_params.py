@@ -34,16 +34,7 @@ n:
 
 
 def declare_from(tmp_path: pathlib.Path, text: str):
-    f = tmp_path / 'p.yaml'
-    f.write_text(text)
-    args = ['x', '--ros-args', '--params-file', str(f)]
-    context = rclpy.Context()
-    rclpy.init(args=args, context=context)
-    node = rclpy.create_node('n', context=context)
-    try:
-        return declare_all(node, VENDOR, args), node
-    finally:
-        rclpy.try_shutdown(context=context)
+    return declare_with(tmp_path, text)
 
 
 def test_good_file_gives_config(tmp_path):
