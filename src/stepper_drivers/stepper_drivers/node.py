@@ -501,7 +501,8 @@ class DriveNode(Node):
             return
         motion = h.motion()
         fut = h.sup.submit(h.name, STREAM, lambda: h.drive.move_to(steps, motion),
-                           f'{what} {position}', topic='position', disarms=True)
+                           f'{what} {position}', topic='position', disarms=True,
+                           hand_over=True)
         fut.add_done_callback(lambda f: self._job_failed(h, f'{what} {position}', f))
 
     def command_velocity(self, h: DriveHandle, velocity: float) -> None:
@@ -519,7 +520,7 @@ class DriveNode(Node):
             h.sup.arm_watchdog(h.name)
         steps_s, motion = h.conv.to_steps(velocity), h.motion()
         fut = h.sup.submit(h.name, STREAM, lambda: h.drive.set_velocity(steps_s, motion), what,
-                           topic='velocity', disarms=velocity == 0.0)
+                           topic='velocity', disarms=velocity == 0.0, hand_over=True)
         fut.add_done_callback(lambda f: self._job_failed(h, what, f))
 
     def on_joint_command(self, msg: JointState) -> None:
@@ -574,7 +575,8 @@ class DriveNode(Node):
 
     async def _run_job(self, h: DriveHandle, kind: str, fn: Callable, label: str,
                        **kw) -> Any:
-        return await self._await(h.sup.submit(h.name, kind, fn, label, **kw), JOB_TIMEOUT_S)
+        return await self._await(h.sup.submit(h.name, kind, fn, label, hand_over=kind == URGENT,
+                                              **kw), JOB_TIMEOUT_S)
 
     async def _respond(self, h: DriveHandle, resp, work, ok_message: Callable[[Any], str]):
         """Await work(); fill a success/message response; errors become success=false."""

@@ -7,6 +7,8 @@ Threads and what they own:
   other threads read them (one reference assignment each, so a reader sees a whole snapshot).
 - Any other thread (ROS callbacks) only calls `submit()` / `stop()` / `arm_watchdog()` /
   `wait_poll()`, which take `_cv` for a moment, enqueue and return a `concurrent.futures.Future`.
+  A command submitted with `hand_over=True` to a sleeping owner also waits (GIL released, at
+  most HAND_OVER_MAX_S) until the owner has taken it: the GIL goes to the owner at once.
 
 Order (issue 9 item 1):
 - Jobs of one drive run in the order submitted, one at a time; a step-wise job (a generator, see
@@ -55,6 +57,8 @@ IDENTITY_ATTEMPTS = 3
 MAX_JOBS_BEFORE_OVERDUE_POLL = 4
 # A watchdog stop that could not be sent is tried again after this long [s].
 WATCHDOG_RETRY_S = 0.1
+# submit(hand_over=True) to a sleeping owner waits at most this long for it to take the job [s].
+HAND_OVER_MAX_S = 0.002
 
 
 class Superseded(DriveError):
@@ -84,6 +88,7 @@ class Job:
     # a step-wise job between whose steps the drive itself is still polled (a stream of set
     # points that lasts seconds: the drive's state must stay fresh meanwhile)
     polled: bool = False
+    taken: threading.Event | None = None   # set when the owner takes it (see submit's hand_over)
 
     def preempted_by(self, urgent: 'Job') -> bool:
         """A stop drops motion; a disable (an URGENT job that is not motion itself) drops
@@ -156,6 +161,7 @@ class BusSupervisor:
         self._cycle_polled: set[str] = set()
         self._last_cycle_t = 0.0
         self._grid_t0 = clock()
+        self._idle = False          # the owner waits on _cv (under _cv)
         self.cycles = 0
 
     # ---------------------------------------------------------------------- other threads
@@ -166,10 +172,22 @@ class BusSupervisor:
     def alive(self) -> bool:
         return self._thread.is_alive()
 
+    @property
+    def idle(self) -> bool:
+        """The owner sleeps, waiting for work or its next poll."""
+        return self._idle
+
     def submit(self, drive: str, kind: str, fn: Callable[[], Any], label: str, *,
                topic: str = '', disarms: bool = False, motion: bool = True,
-               polled: bool = False) -> concurrent.futures.Future:
-        """Queue `fn` (called in the owner thread; may return Steps) for `drive`."""
+               polled: bool = False, hand_over: bool = False) -> concurrent.futures.Future:
+        """Queue `fn` (called in the owner thread; may return Steps) for `drive`.
+
+        hand_over: when the owner sleeps, wait (at most HAND_OVER_MAX_S, GIL released) until
+        it has taken the job. For commands from a ROS callback: without it the executor thread
+        goes on holding the GIL through rclpy's wait-set rebuild after the callback, and the
+        woken owner waits for it, up to the 0.5 ms switch interval and more under load (issue
+        9's command-to-wire figures in docs/benchmarks.md). A busy owner (a transaction in
+        flight) is not waited for: on a serial line that would hold the executor 20-30 ms."""
         fut: concurrent.futures.Future = concurrent.futures.Future()
         job = Job(drive, kind, fn, label, fut, topic, disarms, motion, self.clock(),
                   polled=polled)
@@ -178,6 +196,8 @@ class BusSupervisor:
             if self._stopping:
                 fut.set_exception(Cancelled(f'{label}: the node is shutting down'))
                 return fut
+            if hand_over and self._idle:
+                job.taken = threading.Event()
             slot = self.slots[drive]
             if kind == URGENT:
                 self._urgent.append(job)
@@ -190,6 +210,8 @@ class BusSupervisor:
                             f'{tail.label}: replaced by the newer {label} before it was sent'))
                 slot.queue.append(job)
             self._cv.notify()
+        if job.taken is not None:
+            job.taken.wait(HAND_OVER_MAX_S)
         return fut
 
     def arm_watchdog(self, drive: str) -> None:
@@ -245,7 +267,9 @@ class BusSupervisor:
                     with self._cv:
                         if not self._urgent and self._shutdown_request is None \
                                 and not self._new_command_ready():
+                            self._idle = True
                             self._cv.wait(delay)
+                            self._idle = False
         except Exception as exc:  # noqa: BLE001 - the drives are stopped below, whatever
             try:
                 self.on_event('error', self.name, f'bus owner failed: {exc!r}\n'
@@ -269,6 +293,8 @@ class BusSupervisor:
             with self._cv:
                 urgent = self._urgent.popleft() if self._urgent else None
             if urgent is not None:
+                if urgent.taken is not None:
+                    urgent.taken.set()
                 self._run_urgent(urgent)
                 return 0.0
         self._expire_waiters(now)
@@ -366,6 +392,8 @@ class BusSupervisor:
     def _start_job(self, slot: Slot) -> None:
         with self._cv:
             job = slot.queue.popleft()
+        if job.taken is not None:
+            job.taken.set()
         if job.future.done():          # cancelled by its waiter
             return
         if not slot.connected:

@@ -16,6 +16,7 @@ import pytest
 
 from stepper_drivers.drive import (Bus, Drive, DriveError, DriveState, IdentityError, LinkError,
                                    State)
+from stepper_drivers import supervisor
 from stepper_drivers.supervisor import (COMMAND, MAINTENANCE, STREAM, URGENT, BusSupervisor,
                                         Cancelled, NotConnected, Superseded)
 from stepper_sim.harness import wait_for
@@ -220,6 +221,41 @@ def test_many_publishers_alternating_then_zero_end_stopped(bus):
     assert not sup.watchdog_armed('axis1')
     # coalescing: far fewer writes than commands, and none after the final 0.0
     assert len(line.calls('axis1', 'set_velocity')) < 1001
+
+
+def test_a_command_handed_over_to_a_sleeping_owner_is_taken_before_submit_returns(
+        bus, monkeypatch):
+    """hand_over=True (the node's commands): the submitting thread waits, GIL released,
+    until the sleeping owner has taken the job, so the owner does not wait for the GIL behind
+    rclpy's bookkeeping after the callback. Bounded by HAND_OVER_MAX_S, made long here so a
+    loaded machine cannot end the wait first."""
+    monkeypatch.setattr(supervisor, 'HAND_OVER_MAX_S', 5.0)
+    sup, line, d = bus(publish_rate_hz=0.5)          # the owner sleeps about 2 s between polls
+    for i in range(5):
+        wait_for(lambda: sup.idle, 3.0, 'the owner asleep')
+        fut = sup.submit('axis1', STREAM, lambda i=i: d['axis1'].move_to(i, None), f'p{i}',
+                         topic='position', hand_over=True)
+        assert not sup.slots['axis1'].queue          # taken: popped from the drive's queue
+        result(fut)
+    assert [c[3][0] for c in line.calls('axis1', 'move_to')] == list(range(5))
+
+
+def test_a_busy_owner_is_not_waited_for(bus, monkeypatch):
+    """An owner in a transaction is not waited for (on a serial line that is 20-30 ms of the
+    executor thread): submit returns at once and the job waits in the queue."""
+    monkeypatch.setattr(supervisor, 'HAND_OVER_MAX_S', 5.0)
+    sup, line, d = bus()
+    release = threading.Event()
+    busy = sup.submit('axis2', COMMAND, lambda: release.wait(5.0), 'a long transaction')
+    wait_for(lambda: sup.slots['axis2'].active is not None, 1.0, 'the owner busy')
+    t0 = time.monotonic()
+    fut = sup.submit('axis1', STREAM, lambda: d['axis1'].move_to(1, None), 'p1',
+                     topic='position', hand_over=True)
+    waited = time.monotonic() - t0
+    assert len(sup.slots['axis1'].queue) == 1 and waited < supervisor.HAND_OVER_MAX_S
+    release.set()
+    result(busy)
+    result(fut)
 
 
 # ------------------------------------------------------------------------------ preemption
