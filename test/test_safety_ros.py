@@ -120,7 +120,14 @@ def test_velocity_commands_from_several_publishers_ending_with_zero_leave_it_sto
         t.join()
     t_last = time.monotonic()
     ramp_s = 2 * v / DECEL_RAD_S2[vendor]      # reversing at worst
-    track.wait_still(1.0, ramp_s + 10.0, f'{vendor} axis1 stopped')
+    try:
+        track.wait_still(1.0, ramp_s + 10.0, f'{vendor} axis1 stopped')
+    except AssertionError as exc:      # seen once under an artificial load: say what was seen
+        now = time.monotonic()
+        with track.lock:
+            last = [(round(t - now, 3), x) for t, x in track.samples[-5:]]
+        raise AssertionError(f'{exc}; the node reports {bench.status("axis1")}; the last true '
+                             f'positions (s before now, steps): {last}') from None
     st = bench.status('axis1', lambda m: not m.moving, what='stopped')
     assert not st.moving
     assert time.monotonic() - t_last < 60.0   # far inside command_timeout_s
