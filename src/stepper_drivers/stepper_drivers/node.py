@@ -32,7 +32,7 @@ from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.task import Future as RosFuture
 from rcl_interfaces.msg import SetParametersResult
 from sensor_msgs.msg import JointState
@@ -58,6 +58,15 @@ SHUTDOWN_STOP_TIMEOUT_S = 5.0
 # How long a service waits for its job; a job not started by then is dropped.
 JOB_TIMEOUT_S = 15.0
 GIL_SWITCH_INTERVAL_S = 0.0005
+
+
+# Command topics keep every sample (reliable, KEEP_ALL). With KEEP_LAST 10, four publishers
+# bursting 251 commands each, each ending with 0.0, left the axis running at the older command
+# in 4 of about 25 loaded runs of test_safety_ros: the node's callbacks saw 45-162 of the 1004
+# samples and none of the later 0.0s (Fast DDS's KEEP_LAST reader history fed by several writers;
+# cf. eProsima/Fast-DDS#708). Now every sample reaches the callback in each publisher's order;
+# the bus owner's queue drops stream commands that a newer one replaces before they are sent.
+COMMAND_QOS = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE)
 
 
 class CommandRefused(Exception):
@@ -171,8 +180,8 @@ class DriveNode(Node):
         reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
         self.joint_pub = self._publisher(JointState, 'joint_states', reliable)
         self.diag_pub = self._publisher(DiagnosticArray, '/diagnostics', 10)
-        self.create_subscription(JointState, 'joint_command', self.on_joint_command, 10,
-                                 callback_group=self.cmd_group)
+        self.create_subscription(JointState, 'joint_command', self.on_joint_command,
+                                 COMMAND_QOS, callback_group=self.cmd_group)
         self.status_pubs = {}
         for h in self.handles.values():
             self._make_drive_interfaces(h)
@@ -231,10 +240,10 @@ class DriveNode(Node):
         ns = f'~/{h.name}/'
         self.status_pubs[h.name] = self.create_publisher(DriveStatus, ns + 'status', 10)
         self.create_subscription(Float64, ns + 'position_command',
-                                 lambda m, h=h: self.command_position(h, m.data), 10,
+                                 lambda m, h=h: self.command_position(h, m.data), COMMAND_QOS,
                                  callback_group=self.cmd_group)
         self.create_subscription(Float64, ns + 'velocity_command',
-                                 lambda m, h=h: self.command_velocity(h, m.data), 10,
+                                 lambda m, h=h: self.command_velocity(h, m.data), COMMAND_QOS,
                                  callback_group=self.cmd_group)
         srv = [(SetBool, 'enable', self.srv_enable), (Trigger, 'stop', self.srv_stop),
                (Trigger, 'home', self.srv_home), (Trigger, 'fault_reset', self.srv_fault_reset),

@@ -32,8 +32,9 @@ class TrajectoryInterface:
     def __init__(self, node: 'DriveNode'):
         self.node = node
         self.follower = Follower({})
-        node.create_subscription(JointTrajectory, '~/joint_trajectory', self.on_trajectory, 10,
-                                 callback_group=node.cmd_group)
+        from .node import COMMAND_QOS      # (node.py imports this module)
+        node.create_subscription(JointTrajectory, '~/joint_trajectory', self.on_trajectory,
+                                 COMMAND_QOS, callback_group=node.cmd_group)
         ActionServer(node, FollowJointTrajectory, '~/follow_joint_trajectory',
                      execute_callback=self.execute,
                      goal_callback=lambda _req: GoalResponse.ACCEPT,
