@@ -560,6 +560,20 @@ def test_watchdogs_are_armed_at_connect_and_disarmed_by_an_orderly_close(bench):
     assert node._stored(vm.CONSUMER_HEARTBEAT_TIME, 1) == 0
 
 
+def test_close_ends_the_sync_and_heartbeat_threads_before_the_socket_closes(bench):
+    """python-can's task.stop() only sets a flag and bus.shutdown() closes the socket right
+    after: a SYNC task waking in between sent on a closed socket (a thread exception, 'Bad file
+    descriptor', seen in CI). close() stops and joins the node's own cyclic tasks first."""
+    bench.connect('axis1')
+    mark = bench.monitor.mark()
+    wait(lambda: len(bench.monitor.since(mark, 0x080)) >= 2, what='SYNC from the node')
+    ours = ('Cyclic send task for 0x80', 'Cyclic send task for 0x77F')   # SYNC, heartbeat 127
+    assert {t.name for t in threading.enumerate()} >= set(ours)
+    bench.bus.close()
+    alive = [t.name for t in threading.enumerate() if t.name in ours]
+    assert not alive, alive
+
+
 def test_the_drive_stops_by_itself_when_the_sync_stops(bench):
     """The node (or its bus) dies mid-run: no more SYNC. After 0x1006 the drive raises alarm
     "missing SYNC" (Ralarm32 bit 18) and stops on its emergency ramp (Ralarmreact -4, 0x6085);

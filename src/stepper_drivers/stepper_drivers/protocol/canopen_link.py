@@ -56,6 +56,7 @@ NMT_COMMANDS = {'OPERATIONAL': 0x01, 'STOPPED': 0x02, 'PRE-OPERATIONAL': 0x80,
                 'RESET': 0x81, 'RESET COMMUNICATION': 0x82}
 NMT_STATES = {0x00: 'BOOT-UP', 0x04: 'STOPPED', 0x05: 'OPERATIONAL', 0x7F: 'PRE-OPERATIONAL'}
 SYNC_COB_ID = 0x080            # 0x1005 default ("0x80 or 0x80000080")
+PERIODIC_JOIN_MARGIN_S = 0.5   # close() waits a cyclic task's period plus this for its thread
 GARBAGE_LOG_PERIOD_S = 10.0    # one log line per COB-ID and period for frames that do not fit
 MASTER = '(this node)'         # CanBus._node_ids value of the node's own heartbeat node-ID
 
@@ -111,6 +112,9 @@ class CanBus(Bus):
         self.master_heartbeat_ms = int(master_heartbeat_ms)   # 0: no heartbeat of our own
         self.network: canopen.Network | None = None
         self.generation = 0              # +1 at every open(): drives re-attach their nodes
+        # the SYNC and heartbeat producers (python-can cyclic tasks), stopped and joined by close()
+        self._sync_task: Any = None
+        self._heartbeat_task: Any = None
         self._node_ids: dict[int, str] = {}
         if self.master_heartbeat_ms:
             self._node_ids[self.master_node_id] = MASTER
@@ -162,12 +166,15 @@ class CanBus(Bus):
             # bus (close) and with the process.
             network.sync.cob_id = SYNC_COB_ID
             if self.sync_period_s:
-                network.sync.start(self.sync_period_s)
+                self._sync_task = self._periodic(network, SYNC_COB_ID, b'',
+                                                 self.sync_period_s)
             if self.master_heartbeat_ms:
-                network.send_periodic(0x700 + self.master_node_id, bytes([0x05]),
-                                      self.master_heartbeat_ms / 1000.0)
+                self._heartbeat_task = self._periodic(
+                    network, 0x700 + self.master_node_id, bytes([0x05]),
+                    self.master_heartbeat_ms / 1000.0)
         except (can.CanError, OSError, ValueError, TimeoutError) as exc:
             try:
+                self._stop_periodic()
                 network.disconnect()
             except Exception:  # noqa: BLE001 - half-open: close what there is
                 pass
@@ -181,8 +188,9 @@ class CanBus(Bus):
     # SYNC, so a drive's two-position buffer neither runs dry (EMCY FF03) nor over.
     def own_sync(self) -> None:
         """The periodic SYNC producer stops; the owner sends each SYNC (send_sync)."""
-        if self.network is not None:
-            self.network.sync.stop()
+        task, self._sync_task = self._sync_task, None
+        if task is not None:
+            task.stop()
 
     def send_sync(self) -> None:
         if self.network is not None:
@@ -191,14 +199,35 @@ class CanBus(Bus):
 
     def periodic_sync(self) -> None:
         """The periodic producer again (the drives' 0x1006 watchdog needs it)."""
-        if self.network is not None and self.sync_period_s:
-            self.network.sync.start(self.sync_period_s)
+        if self.network is not None and self.sync_period_s and self._sync_task is None:
+            self._sync_task = self._periodic(self.network, SYNC_COB_ID, b'', self.sync_period_s)
+
+    @staticmethod
+    def _periodic(network: canopen.Network, cob_id: int, data: bytes, period_s: float) -> Any:
+        return network.bus.send_periodic(
+            can.Message(arbitration_id=cob_id, data=data, is_extended_id=False), period_s)
+
+    def _stop_periodic(self) -> None:
+        """Stop the SYNC and heartbeat producers and wait for their threads: python-can's
+        task.stop() only sets a flag, and bus.shutdown() closes the socket right after, so a
+        task woken in between sent on a closed socket ('Exception in thread Cyclic send task
+        for 0x80 ... Bad file descriptor', seen in CI)."""
+        tasks = [t for t in (self._sync_task, self._heartbeat_task) if t is not None]
+        self._sync_task = self._heartbeat_task = None
+        for task in tasks:
+            task.stop()
+        for task in tasks:
+            thread = getattr(task, 'thread', None)     # ThreadBasedCyclicSendTask
+            if thread is not None and thread is not threading.current_thread():
+                # it notices the stop after its sleep: at most one period
+                thread.join(getattr(task, 'period', 0.0) + PERIODIC_JOIN_MARGIN_S)
 
     def close(self) -> None:
         network, self.network = self.network, None
         if network is None:
             return
         try:
+            self._stop_periodic()
             network.disconnect()
         except Exception as exc:  # noqa: BLE001 - a dead bus may fail to close in any way
             logger.debug('closing %s: %s', self.description, exc)
