@@ -7,7 +7,7 @@ true position topic and fault-injection service play the part of the real world.
 import math
 import time
 
-from diagnostic_msgs.msg import DiagnosticStatus
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 import pytest
 from rosharness import (CONFIG, MIDDLEWARE_S, DriveBench, Track, bad_parameter_output,
                         executable, free_port, wait_for, watchdog_bound_s)
@@ -326,6 +326,23 @@ def test_status_carries_address_and_diagnostics_identity(bench):
     assert d.level == DiagnosticStatus.OK
 
 
+def test_diagnostics_go_out_at_their_rate_from_the_poll_cycles(bench):
+    # config/xplus_mt.yaml: publish_rate_hz 50, diagnostics_rate_hz 1 (the default). The
+    # owner thread publishes /diagnostics at the first poll cycle at or after it is due (the
+    # executor has no timer): every interval is the period, late by about a poll period.
+    period_s, poll_s = 1.0, 1.0 / 50.0
+    bench.ros.subscribe(DiagnosticArray, '/diagnostics', keep=True)
+
+    def stamps():
+        with bench.ros.lock:
+            msgs = list(bench.ros.history.get('/diagnostics', []))
+        return [m.header.stamp.sec + m.header.stamp.nanosec * 1e-9 for m in msgs]
+    wait_for(lambda: len(stamps()) >= 4, 4 * period_s + 2.0, '4 /diagnostics messages')
+    got = stamps()
+    gaps = [b - a for a, b in zip(got, got[1:])]
+    assert all(period_s - 0.002 <= g <= period_s + 2 * poll_s + 0.05 for g in gaps), gaps
+
+
 def test_homing_that_does_not_finish_times_out_and_stops(bench):
     # method 21 searches the home switch in the negative direction; axis1's switch is on the
     # positive side, so the search runs on until homing.timeout_s
@@ -385,7 +402,6 @@ def test_one_node_serves_drives_on_several_hosts(procs, ros, tmp_path):
     """A real X-PLUS MT is its own Modbus TCP server: one node, one connection per drive host
     (drives.<name>.port here; .host the same), each with its own owner thread, so a host that
     drops out does not stall the other."""
-    from diagnostic_msgs.msg import DiagnosticArray
     from stepper_drivers_msgs.msg import DriveStatus
 
     ports = (free_port(), free_port())
@@ -430,6 +446,10 @@ def test_one_node_serves_drives_on_several_hosts(procs, ros, tmp_path):
     # the first host goes away: only axis1 is lost, axis2 keeps being polled
     sims[0].stop()
     ros.wait_msg(f'{NODE}/axis1/status', lambda m: m.state == 'DISCONNECTED', 10.0)
+    # /diagnostics goes on (the owner threads publish it) and says so
+    ros.wait_msg('/diagnostics', lambda a: any(
+        s.name == 'xplus_mt_node: axis1' and s.message == 'DISCONNECTED' for s in a.status),
+        5.0, 'axis1 DISCONNECTED in /diagnostics')
     a = ros.wait_msg(f'{NODE}/axis2/status', lambda m: m.connected)
     b = ros.wait_msg(f'{NODE}/axis2/status', lambda m: m.header.stamp.sec > a.header.stamp.sec
                      + 1, 5.0, 'axis2 status going on')

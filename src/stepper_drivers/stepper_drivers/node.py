@@ -9,7 +9,8 @@ turns ROS into jobs and snapshots into ROS:
 - Services and actions are async callbacks: they enqueue a job and `await` its result (and then
   the polls they need) without holding an executor thread, so one SingleThreadedExecutor serves
   the node and a stop is never queued behind a homing.
-- The owner threads publish joint_states and status after each poll cycle of their bus.
+- The owner threads publish joint_states and status after each poll cycle of their bus, and
+  /diagnostics when it is due: the executor has no timer and sleeps until a command comes.
 
 Why one file of about 820 lines: DriveNode is one rclpy Node; its interfaces, command checks,
 publishing and services share its handles, supervisors and callback groups. A split would go
@@ -19,6 +20,7 @@ node_trajectory.TrajectoryInterface; the status/diagnostics publishing (~130 lin
 
 from __future__ import annotations
 
+import array
 import concurrent.futures
 import math
 import sys
@@ -26,10 +28,12 @@ import threading
 import time
 from typing import Any, Callable
 
+from builtin_interfaces.msg import Time as TimeMsg
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 import rclpy
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
+from rclpy.clock import ClockType
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -149,6 +153,11 @@ class DriveNode(Node):
         self._js_lock = threading.Lock()       # joint_states: the owner threads take turns
         self._js_cycled: set[int] = set()
         self._js_due = 0.0
+        self._js_msg: JointState | None = None
+        self._js_handles: list[DriveHandle] = []
+        self._diag_lock = threading.Lock()     # /diagnostics: the owner threads take turns
+        self._diag_due = 0.0
+        self._diag_kv: dict[str, dict[str, KeyValue]] = {}     # status name -> key -> KeyValue
         self.add_on_set_parameters_callback(self.on_set_parameters)
         self.add_post_set_parameters_callback(self.after_set_parameters)
         if not managed:
@@ -160,6 +169,8 @@ class DriveNode(Node):
         self._identities.clear()
         self.supervisors = []
         self._build_buses()
+        with self._js_lock:
+            self._js_msg = None
         self.by_joint = {h.cfg.joint_name: h for h in self.handles.values()}
         if not self._interfaces:
             self._make_interfaces()
@@ -185,8 +196,6 @@ class DriveNode(Node):
         self.status_pubs = {}
         for h in self.handles.values():
             self._make_drive_interfaces(h)
-        self.create_timer(1.0 / self.bus_params['diagnostics_rate_hz'], self.publish_diagnostics,
-                          callback_group=self.cmd_group)
         self.trajectories = TrajectoryInterface(self)
 
     # ----------------------------------------------------------------------------------- set-up
@@ -324,7 +333,7 @@ class DriveNode(Node):
         stamp = None
         now = time.monotonic()
         if self._joint_states_due(sup, now):
-            stamp = self.get_clock().now().to_msg()
+            stamp = self._stamp()
             self._publish_joint_states(stamp)
         handles = [self.handles[n] for n in sup.slots]
         # A status goes out when something in it changed, and at status_rate_hz otherwise:
@@ -337,10 +346,33 @@ class DriveNode(Node):
             if counters is None:
                 counters = sup.bus.counters()
             if stamp is None:
-                stamp = self.get_clock().now().to_msg()
+                stamp = self._stamp()
             self.status_pubs[h.name].publish(self._status_msg(h, stamp, counters))
             h.status_key = key
             h.status_due = now + 1.0 / self.bus_params['status_rate_hz']
+        if now >= self._diag_due:
+            self._publish_diagnostics_due(now)
+
+    def _publish_diagnostics_due(self, now: float) -> None:
+        """/diagnostics from the owner thread that finds it due, not from an executor timer:
+        each timer wake-up made rclpy rebuild its wait set over every service, action and
+        event handler of the node (3 ms with 8 drives) in the thread that takes the commands
+        (issue 9's CPU figures in docs/benchmarks.md)."""
+        with self._diag_lock:
+            if now < self._diag_due:          # another bus's owner was first
+                return
+            self._diag_due = now + 1.0 / self.bus_params['diagnostics_rate_hz']
+            self.publish_diagnostics()
+
+    def _stamp(self) -> TimeMsg:
+        """The node clock's now as a message. Without simulated time that is the system
+        clock, read directly: rclpy's Clock.now().to_msg() cost 60 us a cycle on the owner's
+        cold cache, half of it for a Time object thrown away (issue 9)."""
+        clock = self.get_clock()      # a node's clock is ROS_TIME: system time unless ...
+        if clock.clock_type != ClockType.ROS_TIME or clock.ros_time_is_active:
+            return clock.now().to_msg()            # ... use_sim_time: the /clock topic's time
+        ns = time.time_ns()
+        return TimeMsg(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
 
     def _joint_states_due(self, sup: BusSupervisor, now: float) -> bool:
         """One joint_states for the node's drives once every bus that has a connected drive
@@ -357,16 +389,25 @@ class DriveNode(Node):
             return True
 
     def _publish_joint_states(self, stamp) -> None:
-        handles = list(self.handles.values())
-        js = JointState()
-        js.header.stamp = stamp
-        for h in handles:
-            js.name.append(h.cfg.joint_name)
-            js.position.append(h.position)
-            js.velocity.append(h.velocity if h.state.velocity_valid else math.nan)
-        if all(h.state.effort is not None for h in handles):
-            js.effort = [float(h.state.effort) for h in handles]
-        self.joint_pub.publish(js)
+        """One JointState object, refilled each period under _js_lock (owner threads of several
+        buses take turns; publish() converts it before it returns): at 50 Hz its constructor and
+        per-joint appends cost a third of the publish itself on the owner's cold cache (issue
+        9's CPU figures, docs/benchmarks.md)."""
+        with self._js_lock:
+            js, handles = self._js_msg, self._js_handles
+            if js is None:                      # (build() drops it)
+                handles = self._js_handles = list(self.handles.values())
+                js = self._js_msg = JointState(name=[h.cfg.joint_name for h in handles])
+            states = [h.slot.state for h in handles]
+            js.header.stamp = stamp
+            js.position = array.array('d', [h.conv.from_steps(s.position_steps)
+                                            for h, s in zip(handles, states)])
+            js.velocity = array.array('d', [h.conv.from_steps(s.velocity_steps_s)
+                                            if s.velocity_valid else math.nan
+                                            for h, s in zip(handles, states)])
+            js.effort = array.array('d', [float(s.effort) for s in states]
+                                    if all(s.effort is not None for s in states) else [])
+            self.joint_pub.publish(js)
 
     def _status_key(self, h: DriveHandle) -> tuple:
         """The status fields that make a new status worth sending (not the link counters)."""
@@ -402,8 +443,9 @@ class DriveNode(Node):
         return m
 
     def publish_diagnostics(self) -> None:
+        """Under _diag_lock (an owner thread)."""
         arr = DiagnosticArray()
-        arr.header.stamp = self.get_clock().now().to_msg()
+        arr.header.stamp = self._stamp()
         for sup in self.supervisors:
             names = list(sup.slots)
             link = DiagnosticStatus(name=f'{self.get_name()}: link',
@@ -418,9 +460,9 @@ class DriveNode(Node):
                 link.message = f'{", ".join(lost)} DISCONNECTED, reconnecting'
             else:
                 link.level, link.message = DiagnosticStatus.ERROR, 'DISCONNECTED, reconnecting'
-            link.values = [KeyValue(key=k, value=str(v)) for k, v in sup.bus.counters().items()]
-            link.values.append(KeyValue(key='reconnects', value=str(
-                sum(max(sup.slots[n].reconnects - 1, 0) for n in names))))
+            link.values = self._key_values(link.name, [
+                *sup.bus.counters().items(),
+                ('reconnects', sum(max(sup.slots[n].reconnects - 1, 0) for n in names))])
             arr.status.append(link)
         for h in self.handles.values():
             s = h.state
@@ -446,9 +488,23 @@ class DriveNode(Node):
                   'last_refusal': h.last_refusal,
                   'velocity_watchdog': 'armed' if h.sup.watchdog_armed(h.name) else 'idle',
                   **h.slot.identity}
-            d.values = [KeyValue(key=k, value=str(v)) for k, v in kv.items()]
+            d.values = self._key_values(d.name, kv.items())
             arr.status.append(d)
         self.diag_pub.publish(arr)
+
+    def _key_values(self, status: str, items) -> list[KeyValue]:
+        """KeyValues for (key, value) items, reusing those whose value is unchanged since the
+        last message (under _diag_lock). Built anew, the ~200 of 8 drives took 3.7 ms per
+        message (issue 9)."""
+        cache = self._diag_kv.setdefault(status, {})
+        out = []
+        for k, v in items:
+            v = str(v)
+            kv = cache.get(k)
+            if kv is None or kv.value != v:
+                kv = cache[k] = KeyValue(key=k, value=v)    # new: a published one stays as sent
+            out.append(kv)
+        return out
 
     # ------------------------------------------------------------------------------- commands
     def refuse(self, h: DriveHandle, why: str) -> None:

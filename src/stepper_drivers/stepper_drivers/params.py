@@ -192,7 +192,8 @@ BUS_PARAMS = (
       'when no new command arrives within this time [s]', 0.01, 3600.0, read_only=False),
     P('reconnect_period_s', 1.0, 'first retry delay after the link drops; doubles up to 8x [s]',
       0.05, 600.0),
-    P('diagnostics_rate_hz', 1.0, 'rate of /diagnostics [Hz]', 0.1, 50.0),
+    P('diagnostics_rate_hz', 1.0, 'rate of /diagnostics, at most publish_rate_hz (the bus owner '
+      'sends it after a poll cycle) [Hz]', 0.1, 50.0),
     P('status_rate_hz', 1.0, 'least rate of ~/<drive>/status: it is published at the poll '
       'that sees a change (state, position, velocity, alarms, refusals...) and at least this '
       'often otherwise [Hz]', 0.1, 1000.0, read_only=False),
