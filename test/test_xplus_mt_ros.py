@@ -329,7 +329,8 @@ def test_status_carries_address_and_diagnostics_identity(bench):
 def test_diagnostics_go_out_at_their_rate_from_the_poll_cycles(bench):
     # config/xplus_mt.yaml: publish_rate_hz 50, diagnostics_rate_hz 1 (the default). The
     # owner thread publishes /diagnostics at the first poll cycle at or after it is due (the
-    # executor has no timer): every interval is the period, late by about a poll period.
+    # executor has no timer): every interval is the period give or take a poll period (the stamp
+    # is read when the message is built, after the cycle's joint_states and statuses).
     period_s, poll_s = 1.0, 1.0 / 50.0
     bench.ros.subscribe(DiagnosticArray, '/diagnostics', keep=True)
 
@@ -340,7 +341,7 @@ def test_diagnostics_go_out_at_their_rate_from_the_poll_cycles(bench):
     wait_for(lambda: len(stamps()) >= 4, 4 * period_s + 2.0, '4 /diagnostics messages')
     got = stamps()
     gaps = [b - a for a, b in zip(got, got[1:])]
-    assert all(period_s - 0.002 <= g <= period_s + 2 * poll_s + 0.05 for g in gaps), gaps
+    assert all(period_s - poll_s <= g <= period_s + 3 * poll_s for g in gaps), gaps
 
 
 def test_homing_that_does_not_finish_times_out_and_stops(bench):
