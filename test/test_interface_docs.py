@@ -72,9 +72,10 @@ def interfaces(node, node_name: str) -> set[tuple[str, str, str]]:
     for name, types in node.get_publisher_names_and_types_by_node(node_name, '/'):
         if name not in IGNORED_TOPICS and '/_action/' not in name:
             found.add(('out', _relative(name, node_name), types[0]))
-    for name, types in node.get_subscriber_names_and_types_by_node(node_name, '/'):
-        if '/_action/' not in name:
-            found.add(('in', _relative(name, node_name), types[0]))
+    for owner in (node_name, f'_{node_name}_commands'):     # the command topics' own node
+        for name, types in node.get_subscriber_names_and_types_by_node(owner, '/'):
+            if '/_action/' not in name:
+                found.add(('in', _relative(name, node_name), types[0]))
     for name, types in node.get_service_names_and_types_by_node(node_name, '/'):
         if STANDARD.search(name):
             continue

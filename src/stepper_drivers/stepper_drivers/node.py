@@ -4,8 +4,11 @@ Each bus has one owner thread (`supervisor.BusSupervisor`, no rclpy) that makes 
 the vendor code: polls, commands, reconnects, the velocity watchdog and shutdown. This module only
 turns ROS into jobs and snapshots into ROS:
 - Command subscriptions check a command against the limits and the latest snapshot and enqueue
-  it; they never wait. They share one MutuallyExclusiveCallbackGroup, so two messages of one topic
-  are handled in the order they arrived.
+  it; they never wait. They belong to a hidden companion node (`_<node>_commands`, the pattern of
+  tf2_ros's TransformListener) served by an executor thread of its own, whose wait set holds
+  nothing else: a command is not delayed by rclpy scanning the node's ~80 services, actions and
+  event handlers, nor by a service callback (issue 9's command-to-wire goal). One thread serves
+  them, so the messages of one topic are handled in the order they arrived.
 - Services and actions are async callbacks: they enqueue a job and `await` its result (and then
   the polls they need) without holding an executor thread, so one SingleThreadedExecutor serves
   the node and a stop is never queued behind a homing.
@@ -158,6 +161,15 @@ class DriveNode(Node):
         self._diag_lock = threading.Lock()     # /diagnostics: the owner threads take turns
         self._diag_due = 0.0
         self._diag_kv: dict[str, dict[str, KeyValue]] = {}     # status name -> key -> KeyValue
+        self._refusal_lock = threading.Lock()  # commands and services both count refusals
+        # The command subscriptions' own node: no global arguments (a launch file's
+        # `__node:=` would give it this node's name), topics resolved by this node's rules.
+        self.cmd_node = rclpy.create_node(
+            f'_{self.get_name()}_commands', namespace=self.get_namespace(),
+            context=self.context, use_global_arguments=False, start_parameter_services=False,
+            enable_rosout=False, parameter_overrides=[
+                Parameter('start_type_description_service', value=False)])   # no service
+        self._cmd_executor = None
         self.add_on_set_parameters_callback(self.on_set_parameters)
         self.add_post_set_parameters_callback(self.after_set_parameters)
         if not managed:
@@ -191,8 +203,7 @@ class DriveNode(Node):
         reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
         self.joint_pub = self._publisher(JointState, 'joint_states', reliable)
         self.diag_pub = self._publisher(DiagnosticArray, '/diagnostics', 10)
-        self.create_subscription(JointState, 'joint_command', self.on_joint_command,
-                                 COMMAND_QOS, callback_group=self.cmd_group)
+        self._command_subscription(JointState, 'joint_command', self.on_joint_command)
         self.status_pubs = {}
         for h in self.handles.values():
             self._make_drive_interfaces(h)
@@ -245,15 +256,37 @@ class DriveNode(Node):
                 self.handles[name].sup = sup
             self.supervisors.append(sup)
 
+    def _command_subscription(self, msg_type, topic: str, callback) -> None:
+        """A command topic of this node (its name resolved and remapped as this node's own),
+        subscribed by the companion node."""
+        self.cmd_node.create_subscription(msg_type, self.resolve_topic_name(topic), callback,
+                                          COMMAND_QOS)
+
+    def start_command_executor(self) -> None:
+        """Serve the command subscriptions from a thread of their own (see the module doc)."""
+        from rclpy.executors import SingleThreadedExecutor
+        self._cmd_executor = SingleThreadedExecutor(context=self.context)
+        self._cmd_executor.add_node(self.cmd_node)
+        threading.Thread(target=_spin_commands, args=(self._cmd_executor,),
+                         name='command executor', daemon=True).start()
+
+    def stop_command_executor(self) -> None:
+        if self._cmd_executor is not None:
+            self._cmd_executor.shutdown(timeout_sec=1.0)
+            self._cmd_executor = None
+
+    def destroy_node(self) -> None:
+        self.stop_command_executor()
+        self.cmd_node.destroy_node()
+        super().destroy_node()
+
     def _make_drive_interfaces(self, h: DriveHandle) -> None:
         ns = f'~/{h.name}/'
         self.status_pubs[h.name] = self.create_publisher(DriveStatus, ns + 'status', 10)
-        self.create_subscription(Float64, ns + 'position_command',
-                                 lambda m, h=h: self.command_position(h, m.data), COMMAND_QOS,
-                                 callback_group=self.cmd_group)
-        self.create_subscription(Float64, ns + 'velocity_command',
-                                 lambda m, h=h: self.command_velocity(h, m.data), COMMAND_QOS,
-                                 callback_group=self.cmd_group)
+        self._command_subscription(Float64, ns + 'position_command',
+                                   lambda m, h=h: self.command_position(h, m.data))
+        self._command_subscription(Float64, ns + 'velocity_command',
+                                   lambda m, h=h: self.command_velocity(h, m.data))
         srv = [(SetBool, 'enable', self.srv_enable), (Trigger, 'stop', self.srv_stop),
                (Trigger, 'home', self.srv_home), (Trigger, 'fault_reset', self.srv_fault_reset),
                (Trigger, 'save_params', self.srv_save_params),
@@ -508,10 +541,11 @@ class DriveNode(Node):
 
     # ------------------------------------------------------------------------------- commands
     def refuse(self, h: DriveHandle, why: str) -> None:
-        if why != h.last_refusal:     # log once per distinct reason, count every time
-            self.log.warning(f'{h.name}: command refused: {why}')
-        h.last_refusal = why          # before the count: a status published in between is whole
-        h.commands_refused += 1
+        with self._refusal_lock:      # the command executor and the main one both refuse
+            if why != h.last_refusal:     # log once per distinct reason, count every time
+                self.log.warning(f'{h.name}: command refused: {why}')
+            h.last_refusal = why      # before the count: a status published in between is whole
+            h.commands_refused += 1
         raise CommandRefused(why)
 
     def _check_link(self, h: DriveHandle, what: str, safe: bool = False) -> None:
@@ -875,13 +909,23 @@ def spin_node(node: DriveNode) -> None:
     # The owner threads wait on the bus and then need the GIL back from the executor thread:
     # a short switch interval keeps that hand-over well below a transaction time.
     sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
+    node.start_command_executor()
     node.start()
     try:
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
+        node.stop_command_executor()        # no new command while the drives stop
         node.shutdown_drives()
         executor.shutdown(timeout_sec=1.0)
         node.destroy_node()
         rclpy.try_shutdown()
+
+
+def _spin_commands(executor) -> None:
+    from rclpy.executors import ExternalShutdownException, ShutdownException
+    try:
+        executor.spin()
+    except (ExternalShutdownException, ShutdownException):
+        pass                          # the process is ending: spin_node stops the drives
