@@ -12,9 +12,13 @@ from .vendor_table import BY_LIFECYCLE_NODE, BY_NODE, ROWS
 
 
 def run(exe: str, argv: list[str] | None = None) -> int:
-    import rclpy
+    from .process import block_shutdown_signals, spin_node
+    block_shutdown_signals()        # before any thread: the node takes its signals (process.py)
 
-    from .node import DriveNode, spin_node
+    import rclpy
+    from rclpy.signals import SignalHandlerOptions
+
+    from .node import DriveNode
     from .params import ParameterError, declare_all, non_ros_args
 
     row = BY_NODE.get(exe) or BY_LIFECYCLE_NODE[exe]
@@ -35,7 +39,7 @@ def run(exe: str, argv: list[str] | None = None) -> int:
         print(f'{exe}: unexpected arguments {extra}; usage: {exe} --ros-args --params-file '
               'FILE.yaml', file=sys.stderr)
         return 2
-    rclpy.init(args=argv)
+    rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
     try:
         node = node_class(vendor, row.node, lambda n: share_files(
             declare_all(n, vendor, argv, module.validate), getattr(module, 'SHARE_FILES', {})))

@@ -14,6 +14,7 @@ turns ROS into jobs and snapshots into ROS:
   the node and a stop is never queued behind a homing.
 - The owner threads publish joint_states and status after each poll cycle of their bus, and
   /diagnostics when it is due: the executor has no timer and sleeps until a command comes.
+- process.py runs the node: signals, the executor thread, the order of shutdown.
 
 Why one file of about 820 lines: DriveNode is one rclpy Node; its interfaces, command checks,
 publishing and services share its handles, supervisors and callback groups. A split would go
@@ -26,7 +27,6 @@ from __future__ import annotations
 import array
 import concurrent.futures
 import math
-import sys
 import threading
 import time
 from typing import Any, Callable
@@ -64,7 +64,6 @@ SETTLED_POLLS = 2
 SHUTDOWN_STOP_TIMEOUT_S = 5.0
 # How long a service waits for its job; a job not started by then is dropped.
 JOB_TIMEOUT_S = 15.0
-GIL_SWITCH_INTERVAL_S = 0.0005
 
 
 # Command topics keep every sample (reliable, KEEP_ALL). With KEEP_LAST 10, four publishers
@@ -898,29 +897,6 @@ class DriveNode(Node):
             t.start()
         for t in threads:
             t.join()
-
-
-def spin_node(node: DriveNode) -> None:
-    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
-    # Every callback only checks and enqueues, or awaits: one thread serves them all, with
-    # the shortest publish-to-callback time (issue 9: 4 threads gave 12-120 ms p99 on 2 cores).
-    executor = SingleThreadedExecutor()
-    executor.add_node(node)
-    # The owner threads wait on the bus and then need the GIL back from the executor thread:
-    # a short switch interval keeps that hand-over well below a transaction time.
-    sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
-    node.start_command_executor()
-    node.start()
-    try:
-        executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.stop_command_executor()        # no new command while the drives stop
-        node.shutdown_drives()
-        executor.shutdown(timeout_sec=1.0)
-        node.destroy_node()
-        rclpy.try_shutdown()
 
 
 def _spin_commands(executor) -> None:

@@ -3,6 +3,8 @@ benchmarks (not part of any drive's product path; it lives with the simulators).
 
 `Proc`: a process in its own process group, output captured to a file, waited on by evidence
 (a line it prints), stopped by its own PID with SIGINT (SIGKILL only if it does not end).
+Every process runs with PYTHONFAULTHANDLER: one that does not end gets SIGABRT first, and its
+log then holds the stack of every thread (a hang seen once in CI is otherwise a guess).
 No rclpy here.
 """
 
@@ -68,7 +70,9 @@ class Proc:
         self.log_path = log_dir / f'{name}.log'
         self.log_file = open(self.log_path, 'wb')
         self.proc = subprocess.Popen(args, stdout=self.log_file, stderr=subprocess.STDOUT,
-                                     start_new_session=True, env={**os.environ, **(env or {})},
+                                     start_new_session=True,
+                                     env={**os.environ, 'PYTHONFAULTHANDLER': '1',
+                                          **(env or {})},
                                      # the death signal follows the starting *thread*: only
                                      # the main thread lives as long as the process
                                      preexec_fn=_die_with_parent
@@ -100,12 +104,24 @@ class Proc:
             try:
                 self.proc.wait(timeout=timeout_s)
             except subprocess.TimeoutExpired:
-                os.killpg(self.proc.pid, signal.SIGKILL)
+                self._dump_stacks()
+                try:
+                    os.killpg(self.proc.pid, signal.SIGKILL)   # its children too
+                except ProcessLookupError:
+                    pass
                 self.proc.wait(timeout=5)
                 raise AssertionError(f'{self.name} did not end within {timeout_s} s of '
-                                     f'signal {sig}:\n{self.output()[-3000:]}')
+                                     f'signal {sig}:\n{self.output()[-12000:]}')
         self.log_file.close()
         return self.proc.returncode
+
+    def _dump_stacks(self, timeout_s: float = 3.0) -> None:
+        """SIGABRT to the process alone: faulthandler writes every thread's stack to its log."""
+        try:
+            os.kill(self.proc.pid, signal.SIGABRT)
+            self.proc.wait(timeout=timeout_s)
+        except (ProcessLookupError, subprocess.TimeoutExpired):
+            pass
 
     def kill(self) -> None:
         if self.proc.poll() is None:
