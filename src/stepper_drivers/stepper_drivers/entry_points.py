@@ -47,8 +47,7 @@ def run(exe: str, argv: list[str] | None = None) -> int:
         print(f'{exe}: {e}', file=sys.stderr, flush=True)
         rclpy.try_shutdown()
         return 2
-    spin_node(node)
-    return 0
+    return spin_node(node)
 
 
 def share_files(cfg, files: dict[str, str]):

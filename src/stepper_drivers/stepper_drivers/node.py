@@ -169,6 +169,9 @@ class DriveNode(Node):
             enable_rosout=False, parameter_overrides=[
                 Parameter('start_type_description_service', value=False)])   # no service
         self._cmd_executor = None
+        # called (any thread) when the node cannot go on: a bus owner ended by an internal
+        # error; process.spin_node ends the process then
+        self.on_fatal: Callable[[str], None] = lambda why: None
         self.add_on_set_parameters_callback(self.on_set_parameters)
         self.add_post_set_parameters_callback(self.after_set_parameters)
         if not managed:
@@ -250,7 +253,7 @@ class DriveNode(Node):
                 # managed: enabled at on_activate, not when the bus is configured
                 auto_enable=[] if self.managed else
                 [d.name for d in dcfgs if d.params.get('auto_enable')],
-                name=bus.description or 'bus')
+                name=bus.description or 'bus', on_failure=self._owner_failed)
             for name in drives:
                 self.handles[name].sup = sup
             self.supervisors.append(sup)
@@ -326,6 +329,16 @@ class DriveNode(Node):
                 self.log.info(f'{drive}: {text}')
         else:   # shutdown runs after the ROS context is gone: print, not through rclpy
             print(f'[{self.get_name()}] {drive}: {text}', flush=True)
+
+    def _owner_failed(self, sup: BusSupervisor, why: str) -> None:
+        """Owner thread of `sup`, which ends: its drives are stopped, its bus closed. Their
+        statuses say DISCONNECTED with the reason, and the node ends (exit code 1), stopping
+        the drives of its other buses: a node that no longer polls or watches some of its
+        drives must not go on looking alive (a launch file's respawn restarts it)."""
+        try:
+            self.publish_states(sup)
+        finally:
+            self.on_fatal(f'{sup.name}: {why}')
 
     def _check_identity(self, sup: BusSupervisor, slot: Slot) -> str:
         """Two configured drives that answer with one identity are one device reached twice

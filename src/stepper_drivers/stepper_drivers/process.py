@@ -4,17 +4,18 @@ Why the node takes SIGINT and SIGTERM itself, not rclpy: rclpy's handler wakes t
 and shuts the context down one after the other, from its own thread. An executor woken in
 between finds the context still valid, waits again, and nothing wakes it any more: the node
 never ends, and its drives are not stopped. rclpy's own timers hide this; this node has none
-(its executor sleeps until a command comes, issue 9's CPU figures). Measured under a CPU load:
-a plain rclpy node without a timer missed SIGTERM in 3 of 300 starts (`test_process.py`
-builds the same case).
+(its executor sleeps until a command comes, issue 9's CPU figures). Measured under a CPU load
+(scripts/check_signal_race.py): a plain rclpy node without a timer missed SIGTERM in 4 of 300
+starts; the same node spun by spin_node, in none of 300.
 
 So the signals are blocked in every thread from the start of the process (`block_shutdown_
 signals`, before rclpy.init creates any thread), the executor spins in a thread of its own,
 and the main thread waits for a signal with sigwait: a signal is never lost, whenever it comes.
 The executor thread wakes the main thread the same way if it ends by itself (an exception in a
-callback). Then, in this order: no more commands, every drive stopped (disabled where
-disable_on_shutdown), the executor ended, the node destroyed. Services still answer during the
-stop, with "the node is shutting down".
+callback), and so does a bus owner that ended by an internal error (`DriveNode.on_fatal`): the
+node then ends with exit code 1 rather than go on looking alive with drives nobody polls.
+Then, in this order: no more commands, every drive stopped (disabled where
+disable_on_shutdown), the executor ended, the node destroyed.
 """
 
 from __future__ import annotations
@@ -40,9 +41,11 @@ def shutdown_signals_blocked() -> bool:
     return SHUTDOWN_SIGNALS <= signal.pthread_sigmask(signal.SIG_BLOCK, ())
 
 
-def spin_node(node) -> None:
-    """Serve `node` until SIGINT or SIGTERM, then stop its drives and end. Main thread only,
-    with the shutdown signals blocked since before rclpy.init (block_shutdown_signals)."""
+def spin_node(node) -> int:
+    """Serve `node` until SIGINT or SIGTERM, then stop its drives and end; returns the exit
+    code: 0, or 1 when the node ended itself (`node.on_fatal`: a bus owner failed). Main
+    thread only, with the shutdown signals blocked since before rclpy.init
+    (block_shutdown_signals)."""
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
     if threading.current_thread() is not threading.main_thread() \
             or not shutdown_signals_blocked():
@@ -54,8 +57,15 @@ def spin_node(node) -> None:
     # The owner threads wait on the bus and then need the GIL back from the executor thread:
     # a short switch interval keeps that hand-over well below a transaction time.
     sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
+    name = node.get_name()
     failure: list[BaseException] = []
+    fatal: list[str] = []
     main = threading.main_thread().ident
+
+    def on_fatal(why: str) -> None:
+        fatal.append(why)
+        signal.pthread_kill(main, signal.SIGTERM)
+    node.on_fatal = on_fatal
 
     def spin() -> None:
         try:
@@ -83,3 +93,7 @@ def spin_node(node) -> None:
         rclpy.try_shutdown()
     if failure:
         raise failure[0]
+    if fatal:
+        print(f'{name}: ended: {fatal[0]}', file=sys.stderr, flush=True)
+        return 1
+    return 0

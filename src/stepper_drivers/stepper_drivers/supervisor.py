@@ -136,11 +136,15 @@ class BusSupervisor:
                  on_connected: Callable[['BusSupervisor', Slot], str] | None = None,
                  on_event: Callable[[str, str, str], None] | None = None,
                  auto_enable: Iterable[str] = (), clock: Callable[[], float] = time.monotonic,
-                 name: str = 'bus'):
+                 name: str = 'bus',
+                 on_failure: Callable[['BusSupervisor', str], None] | None = None):
         """`settings` is read live: 'publish_rate_hz', 'command_timeout_s',
         'reconnect_period_s'. `on_cycle` runs in the owner thread after every drive was polled
         once; `on_connected` may return a reason not to drive a drive (duplicate identity);
-        `on_event(level, drive, text)` reports what happened ('info'/'warning'/'error')."""
+        `on_event(level, drive, text)` reports what happened ('info'/'warning'/'error');
+        `on_failure(sup, why)` runs in the owner thread when an internal error ended it, after
+        its drives were stopped and its bus closed (the node then ends: a bus without its owner
+        is neither polled nor watched)."""
         self.bus = bus
         self.settings = settings
         self.slots = {n: Slot(n, d, settings['reconnect_period_s']) for n, d in drives.items()}
@@ -148,6 +152,8 @@ class BusSupervisor:
         self.on_cycle = on_cycle or (lambda sup: None)
         self.on_connected = on_connected or (lambda sup, slot: '')
         self.on_event = on_event or self._log_event
+        self.on_failure = on_failure or (lambda sup, why: None)
+        self.failure = ''           # why the owner ended by itself ('' while it runs)
         self.auto_enable = set(auto_enable)
         self.clock = clock
         self.name = name
@@ -162,6 +168,7 @@ class BusSupervisor:
         self._last_cycle_t = 0.0
         self._grid_t0 = clock()
         self._idle = False          # the owner waits on _cv (under _cv)
+        self._closed = False        # _shutdown_drives ran: the drives stopped, the bus closed
         self.cycles = 0
 
     # ---------------------------------------------------------------------- other threads
@@ -247,7 +254,7 @@ class BusSupervisor:
             self._cv.notify()
         if self._thread.is_alive():
             self._thread.join(join_timeout_s)
-        else:   # never started (tests, a node that failed to start): do it here
+        elif not self._closed:   # never started (tests, a node that failed to start): do it here
             self._shutdown_drives(standstill_timeout_s, set(disable))
 
     # ------------------------------------------------------------------------ owner thread
@@ -271,11 +278,15 @@ class BusSupervisor:
                             self._cv.wait(delay)
                             self._idle = False
         except Exception as exc:  # noqa: BLE001 - the drives are stopped below, whatever
+            why = f'bus owner failed: {exc!r}'
             try:
-                self.on_event('error', self.name, f'bus owner failed: {exc!r}\n'
-                              + traceback.format_exc())
+                self.on_event('error', self.name, f'{why}\n' + traceback.format_exc())
             finally:
                 self._shutdown_drives(1.0, set())
+                for slot in self.slots.values():    # what status and diagnostics say now
+                    slot.connected, slot.last_error = False, why
+                self.failure = why
+                self.on_failure(self, why)
 
     def _new_command_ready(self) -> bool:
         return any(s.queue and s.active is None for s in self.slots.values())
@@ -718,6 +729,7 @@ class BusSupervisor:
             except Exception:  # noqa: BLE001
                 pass
         self._close_bus()
+        self._closed = True
 
     def _shutdown_step(self, slot: Slot, what: str, fn: Callable, *args) -> None:
         try:

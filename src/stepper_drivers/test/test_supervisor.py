@@ -465,3 +465,36 @@ def test_when_polls_overrun_every_drive_gets_its_turn(bus):
     counts = [s.polls - start[n] for n, s in sup.slots.items()]
     assert max(counts) - min(counts) <= 2, counts
     assert sup.cycles - cycles0 >= 19
+
+
+def test_an_owner_that_fails_stops_its_drives_says_why_and_ends_once():
+    """An internal error in the owner loop (here: in on_cycle, the node's publishing): every
+    drive is stopped, the bus closed, the slots say DISCONNECTED with the reason, on_failure is
+    told once; a later shutdown() does not stop them again on the closed bus."""
+    line = Line()
+    drives = {n: ScriptDrive(line, n) for n in ('axis1', 'axis2')}
+    failures, cycles = [], []
+
+    def on_cycle(sup):
+        cycles.append(1)
+        if len(cycles) == 3:
+            raise ZeroDivisionError('a bug in the publishing')
+    sup = BusSupervisor(line, drives, {'publish_rate_hz': RATE_HZ, 'command_timeout_s': 0.3,
+                                       'reconnect_period_s': 0.05},
+                        on_cycle=on_cycle, on_event=lambda *e: None,
+                        on_failure=lambda s, why: failures.append((s, why)))
+    for d in drives.values():
+        d.velocity = 2.0
+    t0 = time.monotonic()
+    sup.start()
+    wait_for(lambda: failures, 3.0 / RATE_HZ + 1.0, 'on_failure')
+    ((who, why),) = failures
+    assert who is sup and 'ZeroDivisionError' in why and sup.failure == why
+    assert _stop_time(line, 'axis1', t0) and _stop_time(line, 'axis2', t0)
+    assert not line.is_open and not sup.alive
+    assert all(not s.connected and s.last_error == why for s in sup.slots.values())
+    on_wire = len(line.calls())
+    sup.shutdown(0.5)
+    assert len(line.calls()) == on_wire
+    with pytest.raises(Cancelled):
+        result(sup.submit('axis1', COMMAND, drives['axis1'].fault_reset, 'late'))
