@@ -186,12 +186,12 @@ def run_xsims(ports: int, units: int) -> None:
 
 
 def ros_publisher(n: int, status_rate_hz: float = 1.0, diagnostics_rate_hz: float = 2.0):
-    """publish(values): what a drive node publishes, for n drives, done the cheapest way rclpy
-    allows: one JointState per poll cycle (one object refilled, array fields, the system clock),
-    each drive's DriveStatus at status_rate_hz and one DiagnosticArray (a status of 12 values per
-    drive, built once, stamped anew) at diagnostics_rate_hz, as the node does when nothing
-    changes (rclpy, the node's QoS); values: (position, statusword). The floor of any rclpy node
-    that offers the interface at this rate (issue 9's CPU goal)."""
+    """publish(values): what a drive node publishes, for n drives, done the cheapest way we
+    know: one JointState per poll cycle (CDR bytes published raw, as the node does; the system
+    clock), each drive's DriveStatus at status_rate_hz and one DiagnosticArray (a status of 12
+    values per drive, built once, stamped anew) at diagnostics_rate_hz, as the node does when
+    nothing changes (rclpy, the node's QoS); values: (position, statusword). The floor of an
+    rclpy node that offers the interface at this rate (issue 9's CPU goal)."""
     import array
     import rclpy
     from builtin_interfaces.msg import Time
@@ -208,6 +208,11 @@ def ros_publisher(n: int, status_rate_hz: float = 1.0, diagnostics_rate_hz: floa
     diag_pub = node.create_publisher(DiagnosticArray, '/diagnostics', 10)
     names = [f'bench_joint{i}' for i in range(1, n + 1)]
     js = JointState(name=names)
+    try:                        # the node's way: CDR bytes published raw (joint_state_cdr.py)
+        from stepper_drivers.joint_state_cdr import JointStateCdr
+        cdr = JointStateCdr(names)
+    except ImportError:         # a tree from before it
+        cdr = None
     diag = DiagnosticArray(status=[DiagnosticStatus(
         name=f'bench_cp_bare: axis{i}', message='OK', hardware_id=f'unit {i}',
         values=[KeyValue(key=f'key{k}', value=str(k)) for k in range(12)])
@@ -217,10 +222,14 @@ def ros_publisher(n: int, status_rate_hz: float = 1.0, diagnostics_rate_hz: floa
     def publish(values: list[tuple[int, int]]) -> None:
         ns = time.time_ns()
         stamp = Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
-        js.header.stamp = stamp
-        js.position = array.array('d', [float(p) / 12800.0 for p, _ in values])
-        js.velocity = array.array('d', [0.0] * n)
-        js_pub.publish(js)
+        if cdr is not None:
+            js_pub.publish(cdr.encode(stamp.sec, stamp.nanosec,
+                                      [float(p) / 12800.0 for p, _ in values], [0.0] * n))
+        else:
+            js.header.stamp = stamp
+            js.position = array.array('d', [float(p) / 12800.0 for p, _ in values])
+            js.velocity = array.array('d', [0.0] * n)
+            js_pub.publish(js)
         now = time.monotonic()
         if now >= due['status']:
             due['status'] = now + 1.0 / status_rate_hz

@@ -24,7 +24,6 @@ node_trajectory.TrajectoryInterface; the status/diagnostics publishing (~130 lin
 
 from __future__ import annotations
 
-import array
 import concurrent.futures
 import math
 import threading
@@ -51,6 +50,7 @@ from stepper_drivers_msgs.srv import ReadRegister, WriteRegister
 
 from .drive import (Drive, DriveError, DriveState, Homing, HomingState, Motion, RefusedError,
                     Vendor)
+from .joint_state_cdr import JointStateCdr
 from .params import BusConfig, DriveConfig, ParameterError, current_values
 from .node_trajectory import TrajectoryInterface
 from .supervisor import (COMMAND, MAINTENANCE, STREAM, URGENT, BusSupervisor, Cancelled, Slot,
@@ -155,7 +155,7 @@ class DriveNode(Node):
         self._js_lock = threading.Lock()       # joint_states: the owner threads take turns
         self._js_cycled: set[int] = set()
         self._js_due = 0.0
-        self._js_msg: JointState | None = None
+        self._js_cdr: JointStateCdr | None = None     # the joint names, encoded once
         self._js_handles: list[DriveHandle] = []
         self._diag_lock = threading.Lock()     # /diagnostics: the owner threads take turns
         self._diag_due = 0.0
@@ -184,7 +184,7 @@ class DriveNode(Node):
         self.supervisors = []
         self._build_buses()
         with self._js_lock:
-            self._js_msg = None
+            self._js_cdr = None
         self.by_joint = {h.cfg.joint_name: h for h in self.handles.values()}
         if not self._interfaces:
             self._make_interfaces()
@@ -434,25 +434,23 @@ class DriveNode(Node):
             return True
 
     def _publish_joint_states(self, stamp) -> None:
-        """One JointState object, refilled each period under _js_lock (owner threads of several
-        buses take turns; publish() converts it before it returns): at 50 Hz its constructor and
-        per-joint appends cost a third of the publish itself on the owner's cold cache (issue
-        9's CPU figures, docs/benchmarks.md)."""
+        """One JointState for every drive of the node, as CDR bytes published raw (encoded
+        under _js_lock: owner threads of several buses take turns): rclpy's message path cost
+        about 100 us more per message on the owner's cold cache (joint_state_cdr.py; issue 9's
+        CPU figures in docs/benchmarks.md)."""
         with self._js_lock:
-            js, handles = self._js_msg, self._js_handles
-            if js is None:                      # (build() drops it)
+            cdr, handles = self._js_cdr, self._js_handles
+            if cdr is None:                      # (build() drops it)
                 handles = self._js_handles = list(self.handles.values())
-                js = self._js_msg = JointState(name=[h.cfg.joint_name for h in handles])
+                cdr = self._js_cdr = JointStateCdr([h.cfg.joint_name for h in handles])
             states = [h.slot.state for h in handles]
-            js.header.stamp = stamp
-            js.position = array.array('d', [h.conv.from_steps(s.position_steps)
-                                            for h, s in zip(handles, states)])
-            js.velocity = array.array('d', [h.conv.from_steps(s.velocity_steps_s)
-                                            if s.velocity_valid else math.nan
-                                            for h, s in zip(handles, states)])
-            js.effort = array.array('d', [float(s.effort) for s in states]
-                                    if all(s.effort is not None for s in states) else [])
-            self.joint_pub.publish(js)
+            self.joint_pub.publish(cdr.encode(
+                stamp.sec, stamp.nanosec,
+                [h.conv.from_steps(s.position_steps) for h, s in zip(handles, states)],
+                [h.conv.from_steps(s.velocity_steps_s) if s.velocity_valid else math.nan
+                 for h, s in zip(handles, states)],
+                [float(s.effort) for s in states]
+                if all(s.effort is not None for s in states) else None))
 
     def _status_key(self, h: DriveHandle) -> tuple:
         """The status fields that make a new status worth sending (not the link counters)."""
