@@ -771,6 +771,8 @@ def cpu_case(case: str, ros: RosClient, log_dir: pathlib.Path, window_s: float) 
             refs = [('bare', ['bare-modbus', *loop_args]),
                     ('bare+ROS', ['bare-modbus-ros', *loop_args]),
                     ('driver', ['driver-xplus', *loop_args])]
+            if case == 'xplus_ports':
+                refs.append(('bare/link', ['bare-modbus-threads', *loop_args]))
             sim_pid = sims.pid
         else:
             port = free_port()
@@ -845,7 +847,8 @@ def cpu_case(case: str, ros: RosClient, log_dir: pathlib.Path, window_s: float) 
             'bare+ROS': 'the same + rclpy publishing what the node does when nothing '
                         'changes, the cheapest way (JointState per period, DriveStatus 1 Hz, '
                         '/diagnostics 2 Hz): the floor of an rclpy node',
-            'driver': 'the project\'s XplusMtDrive.read_state() loop, no ROS'}
+            'driver': 'the project\'s XplusMtDrive.read_state() loop, no ROS',
+            'bare/link': 'the bare loop with a thread per link, as the node has'}
     print(f'\n== CPU at {POLL_RATE_CPU_HZ:g} Hz, {title} [{res["cores"]} cores, load '
           f'{load:.2f}; {window_s:g} s windows; % of one core]')
     print(f'   node:      {node_cpu:6.1%}   by thread: '

@@ -25,6 +25,7 @@ the same clock in every process of the machine):
     bare-canopen RATE_HZ PORT IDS      a canopen loop: the node's TxPDO set on drives IDS
                                        (comma-separated), SYNC and heartbeat as the node sends
                                        them, the cached values read once per period
+    bare-modbus-threads RATE_HZ UNITS PORT...  the same with a thread per port
     bare-modbus-ros, bare-canopen-ros  the same, publishing what a drive node publishes when
                                        nothing changes: one JointState per period, each
                                        DriveStatus at 1 Hz, /diagnostics at 2 Hz
@@ -272,6 +273,34 @@ def run_bare_modbus(rate_hz: float, units: int, ports: list[int], ros: bool) -> 
         time.sleep(max(0.0, t_next - time.monotonic()))
 
 
+def run_bare_modbus_threads(rate_hz: float, units: int, ports: list[int]) -> None:
+    """bare-modbus with a thread per port, all on one grid of periods: the bare loop of a
+    design that gives every link a thread of its own (as the node does: a dead host stalls
+    only its own link's polls and watchdog)."""
+    from pymodbus.client import ModbusTcpClient
+    clients = []
+    for port in ports:
+        c = ModbusTcpClient('127.0.0.1', port=port, timeout=1)
+        assert c.connect(), f'no connection to 127.0.0.1:{port}'
+        clients.append(c)
+    period_s, t0 = 1.0 / rate_hz, time.monotonic()
+
+    def loop(c) -> None:
+        t_next = t0
+        while True:
+            for unit in range(1, units + 1):
+                r = c.read_holding_registers(XPLUS_STATE_BLOCK[0], count=XPLUS_STATE_BLOCK[1],
+                                             device_id=unit)
+                assert not r.isError(), r
+            t_next = max(t_next + period_s, time.monotonic())
+            time.sleep(max(0.0, t_next - time.monotonic()))
+    threads = [threading.Thread(target=loop, args=(c,), daemon=True) for c in clients]
+    for t in threads:
+        t.start()
+    out('ready')
+    threads[0].join()
+
+
 def run_driver_xplus(rate_hz: float, units: int, ports: list[int]) -> None:
     """The project's X-PLUS MT driver without ROS: connect, then read_state() of every drive
     once per period (what the node's owner threads do between publishing)."""
@@ -365,6 +394,8 @@ def main(argv: list[str]) -> int:
     elif kind in ('bare-modbus', 'bare-modbus-ros'):
         run_bare_modbus(float(args[0]), int(args[1]), [int(p) for p in args[2:]],
                         kind.endswith('-ros'))
+    elif kind == 'bare-modbus-threads':
+        run_bare_modbus_threads(float(args[0]), int(args[1]), [int(p) for p in args[2:]])
     elif kind == 'driver-xplus':
         run_driver_xplus(float(args[0]), int(args[1]), [int(p) for p in args[2:]])
     elif kind in ('bare-canopen', 'bare-canopen-ros'):

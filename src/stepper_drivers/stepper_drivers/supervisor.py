@@ -26,7 +26,11 @@ position or homing command) that the drive confirmed disarms it. A refusal, a lo
 loss leaves it armed; after a reconnect an expired deadline stops the drive at once. It is checked
 on the owner's clock (the loop wakes at the deadline), not once per poll.
 
-Why one file of about 710 lines: it is one owner loop; scheduling (queues, URGENT, watchdog),
+An exception that escapes the owner loop (a bug, not a drive's error: those are the jobs' and
+polls' results) stops every drive of the bus, closes it, marks the drives DISCONNECTED with the
+error and calls `on_failure`: the node then ends, since nobody polls or watches these drives.
+
+Why one file of about 750 lines: it is one owner loop; scheduling (queues, URGENT, watchdog),
 link state (connect, back-off, loss) and shutdown change the same slots, queues and futures under
 `_cv`, and the order rules above span all three. A split would go along the link lifecycle
 (`_drive_lost` .. `refuse_drive`, about 100 lines), calling back `_cut_short`/`_resolve_waiters`.
