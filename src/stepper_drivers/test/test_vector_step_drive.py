@@ -776,3 +776,31 @@ def test_motion_commands_are_checked_against_the_objects_range(bench, command, m
     bench.monitor.catch_up()
     sent = [c for c, _ in bench.monitor.since(mark) if c in (0x201, 0x301, 0x401, 0x601)]
     assert not sent, 'nothing of a refused command goes on the wire'
+
+
+@pytest.mark.parametrize('inhibit_ms', [0.0, 10.0])
+def test_the_position_and_velocity_txpdos_are_spaced_by_the_inhibit_time(tmp_path, inhibit_ms):
+    """tpdo_inhibit_ms goes to 0x1801:03 and 0x1802:03 (100 us units) at every boot, TxPDO1 and
+    TxPDO4 (which carry a statusword change at once) keep 0; while the axis moves, TxPDO2 and
+    TxPDO3 then come at most once per inhibit time, and the move still ends where it should."""
+    bench = Bench(tmp_path, tpdo_inhibit_ms=inhibit_ms)
+    try:
+        d = bench.connect('axis1')
+        node = bench.sim.nodes['axis1']
+        units = round(inhibit_ms * 10)
+        assert [node._stored(0x1800 + n, 3) for n in range(4)] == [0, units, units, 0]
+        complete(d.enable())
+        mark, t0 = bench.monitor.mark(), time.monotonic()
+        complete(d.move_to(32000, MOTION))                 # about 1.2 s at MOTION's profile
+        assert settle(d).position_steps == 32000
+        elapsed_s = time.monotonic() - t0
+        bench.monitor.barrier(bench.bus)
+        for cob in (0x281, 0x381):
+            frames = len(bench.monitor.since(mark, cob))
+            if inhibit_ms:
+                assert elapsed_s / 0.05 <= frames <= elapsed_s / (inhibit_ms / 1000.0) + 2, \
+                    (hex(cob), frames, elapsed_s)
+            elif cob == 0x281:   # at every position change: more often (the simulator's cycle)
+                assert frames > 1.5 * elapsed_s / 0.01, (hex(cob), frames, elapsed_s)
+    finally:
+        bench.close()

@@ -66,6 +66,9 @@ RESCUE_BOOT_WAIT_S = 0.5       # boot-up wait after a reset sent to a node that 
 # 13.5 ms per frame [LAYER FISICO]), plus BURST_SLACK_S for the receive thread.
 FRAME_BITS = 135
 BURST_SLACK_S = 0.02
+# The TxPDOs that tpdo_inhibit_ms spaces out: the two whose values change all through a motion
+# (position, velocity); TxPDO1 and TxPDO4 still carry a statusword change at once.
+INHIBITED_TPDOS = (2, 3)
 # 0x1016 consumer time: this many periods of the node's own heartbeat ("deve essere settato piu'
 # alto del tempo impostato nel generatore" [CONSUMER HEARTBEAT TIME]). 10: 1 s at 100 ms, as the
 # node's own heartbeat_timeout_s; 3 (300 ms) tripped on a loaded 2-core machine when the python-can
@@ -186,6 +189,7 @@ class VectorStepDrive(Drive):
         self.consumer_heartbeat = self.can.master_node_id << 16 | consumer_ms \
             if consumer_ms else 0
         self.event_timer_ms = int(params.get('tpdo_event_timer_ms', 100))
+        self.inhibit_100us = int(round(float(params.get('tpdo_inhibit_ms', 0.0)) * 10))
         self.boot_timeout_s = float(params.get('boot_timeout_s', 2.0))
         self.boot_retries = int(params.get('boot_retries', 3))
         eds = str(params.get('can.eds_file') or '') or str(vm.eds_path())
@@ -432,8 +436,9 @@ class VectorStepDrive(Drive):
         for number, entries in enumerate(vm.DRIVER_TPDOS, 1):
             yield 0.0
             timer = self.event_timer_ms if number == 2 else 0
-            yield from self.link.configure_pdo('tx', number, entries, 0xFE,
-                                               event_timer_ms=timer)
+            yield from self.link.configure_pdo(
+                'tx', number, entries, 0xFE, event_timer_ms=timer,
+                inhibit_time_100us=self.inhibit_100us if number in INHIBITED_TPDOS else 0)
         self.link.node.setup_pdos(upload=False)
         for number in range(1, len(vm.DRIVER_TPDOS) + 1):   # before the link's notifying one
             pdo = self.link.node.tpdo[number]
@@ -460,7 +465,7 @@ class VectorStepDrive(Drive):
         if self._coherent() or newest == self._burst_given_up:
             return
         bound_s = len(vm.DRIVER_TPDOS) * max(self.can.drive_count, 1) * FRAME_BITS \
-            / self.can.bitrate + BURST_SLACK_S
+            / self.can.bitrate + BURST_SLACK_S + self.inhibit_100us * 1e-4
         if not (yield from self.link.wait(self._coherent, since + bound_s - time.monotonic())):
             # a frame of the burst is lost: do not slow every poll down until the next change
             self._burst_given_up = newest
@@ -1056,6 +1061,10 @@ PARAMS = (
     ParamSpec('tpdo_event_timer_ms', 100, 'event timer of TxPDO2 (statusword + position): sent '
               'at least this often besides on change [ms]; 0 = on change only (then a motion '
               'command first reads the statusword by SDO)', min_value=0, max_value=65535),
+    ParamSpec('tpdo_inhibit_ms', 0.0, 'inhibit time of TxPDO2 (statusword + position) and '
+              'TxPDO3 (statusword + velocity), 0x1801/0x1802:03: while the axis moves they go '
+              'out at most this often instead of at every change [ms]; 0 = at every change',
+              min_value=0.0, max_value=6553.5),
     ParamSpec('boot_timeout_s', 2.0, 'wait for the boot-up after NMT reset communication [s]',
               min_value=0.05, max_value=60.0),
     ParamSpec('boot_retries', 3, 'SDO pings before a connect attempt gives up', min_value=1,
