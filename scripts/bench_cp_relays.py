@@ -208,12 +208,11 @@ def ros_publisher(n: int, status_rate_hz: float = 1.0, diagnostics_rate_hz: floa
                for i in range(1, n + 1)]
     diag_pub = node.create_publisher(DiagnosticArray, '/diagnostics', 10)
     names = [f'bench_joint{i}' for i in range(1, n + 1)]
-    js = JointState(name=names)
     try:                        # the node's way: CDR bytes published raw (joint_state_cdr.py)
         from stepper_drivers.joint_state_cdr import JointStateCdr
-        cdr = JointStateCdr(names)
+        cdr, js = JointStateCdr(names), None
     except ImportError:         # a tree from before it
-        cdr = None
+        cdr, js = None, JointState(name=names)
     diag = DiagnosticArray(status=[DiagnosticStatus(
         name=f'bench_cp_bare: axis{i}', message='OK', hardware_id=f'unit {i}',
         values=[KeyValue(key=f'key{k}', value=str(k)) for k in range(12)])
@@ -248,13 +247,19 @@ def ros_publisher(n: int, status_rate_hz: float = 1.0, diagnostics_rate_hz: floa
     return publish
 
 
-def run_bare_modbus(rate_hz: float, units: int, ports: list[int], ros: bool) -> None:
+def modbus_clients(ports: list[int]):
+    """A connected pymodbus client per port on 127.0.0.1."""
     from pymodbus.client import ModbusTcpClient
     clients = []
     for port in ports:
         c = ModbusTcpClient('127.0.0.1', port=port, timeout=1)
         assert c.connect(), f'no connection to 127.0.0.1:{port}'
         clients.append(c)
+    return clients
+
+
+def run_bare_modbus(rate_hz: float, units: int, ports: list[int], ros: bool) -> None:
+    clients = modbus_clients(ports)
     publish = ros_publisher(units * len(ports)) if ros else None
     out('ready')
     period_s, t_next = 1.0 / rate_hz, time.monotonic()
@@ -277,12 +282,7 @@ def run_bare_modbus_threads(rate_hz: float, units: int, ports: list[int]) -> Non
     """bare-modbus with a thread per port, all on one grid of periods: the bare loop of a
     design that gives every link a thread of its own (as the node does: a dead host stalls
     only its own link's polls and watchdog)."""
-    from pymodbus.client import ModbusTcpClient
-    clients = []
-    for port in ports:
-        c = ModbusTcpClient('127.0.0.1', port=port, timeout=1)
-        assert c.connect(), f'no connection to 127.0.0.1:{port}'
-        clients.append(c)
+    clients = modbus_clients(ports)
     period_s, t0 = 1.0 / rate_hz, time.monotonic()
 
     def loop(c) -> None:

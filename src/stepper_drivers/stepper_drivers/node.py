@@ -327,7 +327,7 @@ class DriveNode(Node):
                 self.log.warning(f'{drive}: {text}')
             else:
                 self.log.info(f'{drive}: {text}')
-        else:   # shutdown runs after the ROS context is gone: print, not through rclpy
+        else:   # the ROS context is gone (rclpy shut down): print, not through rclpy
             print(f'[{self.get_name()}] {drive}: {text}', flush=True)
 
     def _owner_failed(self, sup: BusSupervisor, why: str) -> None:
