@@ -108,8 +108,16 @@ class DriveBench:
 
     # ------------------------------------------------------------------------------ ROS
     def status(self, drive, cond=lambda m: True, timeout_s=10.0, what=''):
-        return self.ros.wait_msg(f'{self.node_ns}/{drive}/status', cond, timeout_s,
-                                 what or f'{drive} status')
+        """The first status of `drive` that meets cond; a timeout names the last one seen and
+        the node's log (a failure in CI is otherwise a bare 'timed out')."""
+        topic = f'{self.node_ns}/{drive}/status'
+        try:
+            return self.ros.wait_msg(topic, cond, timeout_s, what or f'{drive} status')
+        except AssertionError as e:
+            with self.ros.lock:
+                last = self.ros.latest.get(topic)
+            raise AssertionError(f'{e}\nlast status: {last}\n'
+                                 f'node log:\n{self.node.output()[-3000:]}') from None
 
     def true_topic(self, drive):
         return f'{self.sim_ns}/{drive}/true_position_steps'
