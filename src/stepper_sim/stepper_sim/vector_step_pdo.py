@@ -171,7 +171,11 @@ class PdoEngine:
                     self._send_tpdo(pdo, now, data)
                 else:
                     pdo.due = pdo.last_sent + inhibit_s
-            elif pdo.event_timer_ms and now >= pdo.last_sent + pdo.event_timer_ms / 1000.0:
+                continue
+            # A change that went back within the inhibit time leaves nothing to send: a `due`
+            # kept in the past made next_deadline() return it and the cycle loop spin.
+            pdo.due = None
+            if pdo.event_timer_ms and now >= pdo.last_sent + pdo.event_timer_ms / 1000.0:
                 period_s = pdo.event_timer_ms / 1000.0
                 due = pdo.last_sent + period_s
                 self._send_tpdo(pdo, now, data)

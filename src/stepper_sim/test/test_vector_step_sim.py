@@ -357,6 +357,26 @@ def test_g10_sync_types_and_event_timer(bench):
     assert 0.08 < time.monotonic() - t0 < 0.2
 
 
+def test_g10_a_change_undone_within_the_inhibit_time_sends_nothing_and_the_sim_idles(bench):
+    """0x1800:03 inhibit time: the statusword changes and changes back before the inhibit time
+    is over. Nothing is left to send, and the simulator's cycle loop must go back to sleep: it
+    spun instead (this process' CPU time over the wall time 0.2-0.5), which starved the node and
+    the drives' motion beside it on two cores."""
+    _, wire = bench
+    wire.write(0x1800, 3, 5000, 2)                  # TxPDO1 inhibit 0.5 s
+    start(wire)
+    first = wire.expect(0x181, 0.5)
+    wire.send(0x201, h('06 00 01'))                 # Shutdown: Ready to switch on
+    wire.send(0x201, h('00 00 01'))                 # Disable voltage: back to the first sw
+    wire.read(0x1000, 0, 1)                         # both handled
+    cpu_s, wall_s = time.process_time(), time.monotonic()
+    assert wire.silent(0x181, 0.6), 'TxPDO1 sent although its data came back to the last sent'
+    share = (time.process_time() - cpu_s) / (time.monotonic() - wall_s)
+    assert share < 0.1, f'the simulator used {share:.0%} of a core with nothing to do'
+    wire.send(0x201, h('06 00 01'))                 # a change that stays is still sent
+    assert wire.expect(0x181, 0.6) != first
+
+
 # --- G5, G6, G7: faults, EMCY, history ---------------------------------------------------------
 def test_g5_g7_fault_emcy_and_the_manuals_recovery(bench):
     sim, wire = bench
