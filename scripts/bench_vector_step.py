@@ -2,12 +2,13 @@
 """Benchmark: what vector_step_node publishes when the drives send their TxPDOs at 1 kHz.
 
 For 1 and 4 simulated drives on one CAN bus (the loopback socketcand broker as its own process),
-vector_step_node runs with publish_rate_hz 1000 and tpdo_event_timer_ms 1 (TxPDO2 = statusword
-+ position actual value, at least every 1 ms), the drives move during the window, and the script
-measures per second: the TxPDOs the node's CAN stack received (its link counters), the
-joint_states and status messages the node published and how many of them carried a new
-position, the CPU share of the node process (and of the simulator), and compares with the frame
-rate a real 1 Mbit/s bus allows for the same PDO (6 data bytes).
+vector_step_node runs with publish_rate_hz 1000, tpdo_event_timer_ms 1 (TxPDO2 = statusword
++ position actual value, at least every 1 ms) and tpdo_inhibit_ms 0 (not its default), the
+drives move during the window, and the script measures per second: the TxPDOs the node's CAN
+stack received (its link counters), the joint_states and status messages the node published and
+how many of them carried a new position, the CPU share of the node process (and of the
+simulator), and compares with the frame rate a real 1 Mbit/s bus allows for the same PDO (6 data
+bytes).
 
 Run: source scripts/env.sh && python scripts/bench_vector_step.py [--window 4] [--nodes 1 4]
 """
@@ -62,7 +63,8 @@ def write_params(path: pathlib.Path, n: int, port: int) -> tuple[pathlib.Path, p
     for i, d in enumerate(drives, 1):
         node[f'drives.{d}'] = {'node_id': i, 'joint_name': f'joint{i}', 'steps_per_rev': 3200.0,
                                'max_velocity': 40.0, 'profile_velocity': 6.0,
-                               'tpdo_event_timer_ms': 1, 'heartbeat_timeout_s': 2.0}
+                               'tpdo_event_timer_ms': 1, 'tpdo_inhibit_ms': 0.0,
+                               'heartbeat_timeout_s': 2.0}
         sim[f'drives.{d}'] = {'node_id': i}
     node_file, sim_file = path / f'node{n}.yaml', path / f'sim{n}.yaml'
     node_file.write_text(yaml.safe_dump({'vector_step_node': {'ros__parameters': node}}))

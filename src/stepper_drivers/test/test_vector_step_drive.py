@@ -778,12 +778,14 @@ def test_motion_commands_are_checked_against_the_objects_range(bench, command, m
     assert not sent, 'nothing of a refused command goes on the wire'
 
 
-@pytest.mark.parametrize('inhibit_ms', [0.0, 10.0])
+@pytest.mark.parametrize('inhibit_ms', [0.0, 10.0, None])
 def test_the_position_and_velocity_txpdos_are_spaced_by_the_inhibit_time(tmp_path, inhibit_ms):
     """tpdo_inhibit_ms goes to 0x1801:03 and 0x1802:03 (100 us units) at every boot, TxPDO1 and
     TxPDO4 (which carry a statusword change at once) keep 0; while the axis moves, TxPDO2 and
-    TxPDO3 then come at most once per inhibit time, and the move still ends where it should."""
-    bench = Bench(tmp_path, tpdo_inhibit_ms=inhibit_ms)
+    TxPDO3 then come at most once per inhibit time, and the move still ends where it should.
+    None: not given, 10 ms (at every change one moving axis would fill a 125 kbit/s bus)."""
+    bench = Bench(tmp_path, **({} if inhibit_ms is None else {'tpdo_inhibit_ms': inhibit_ms}))
+    inhibit_ms = 10.0 if inhibit_ms is None else inhibit_ms
     try:
         d = bench.connect('axis1')
         node = bench.sim.nodes['axis1']

@@ -189,7 +189,7 @@ class VectorStepDrive(Drive):
         self.consumer_heartbeat = self.can.master_node_id << 16 | consumer_ms \
             if consumer_ms else 0
         self.event_timer_ms = int(params.get('tpdo_event_timer_ms', 100))
-        self.inhibit_100us = int(round(float(params.get('tpdo_inhibit_ms', 0.0)) * 10))
+        self.inhibit_100us = int(round(float(params.get('tpdo_inhibit_ms', 10.0)) * 10))
         self.boot_timeout_s = float(params.get('boot_timeout_s', 2.0))
         self.boot_retries = int(params.get('boot_retries', 3))
         eds = str(params.get('can.eds_file') or '') or str(vm.eds_path())
@@ -1061,9 +1061,10 @@ PARAMS = (
     ParamSpec('tpdo_event_timer_ms', 100, 'event timer of TxPDO2 (statusword + position): sent '
               'at least this often besides on change [ms]; 0 = on change only (then a motion '
               'command first reads the statusword by SDO)', min_value=0, max_value=65535),
-    ParamSpec('tpdo_inhibit_ms', 0.0, 'inhibit time of TxPDO2 (statusword + position) and '
+    ParamSpec('tpdo_inhibit_ms', 10.0, 'inhibit time of TxPDO2 (statusword + position) and '
               'TxPDO3 (statusword + velocity), 0x1801/0x1802:03: while the axis moves they go '
-              'out at most this often instead of at every change [ms]; 0 = at every change',
+              'out at most this often instead of at every change, which would fill a 125 kbit/s '
+              'bus with one moving axis [ms]; 0 = at every change (the DS-301 default)',
               min_value=0.0, max_value=6553.5),
     ParamSpec('boot_timeout_s', 2.0, 'wait for the boot-up after NMT reset communication [s]',
               min_value=0.05, max_value=60.0),
