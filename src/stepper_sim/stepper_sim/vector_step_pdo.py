@@ -45,6 +45,13 @@ class Pdo:
     def length(self) -> int:
         return sum(bits for _, _, bits in self.entries) // 8
 
+    def timer_due(self) -> float | None:
+        """When the event timer sends the unchanged data again (254/255); the inhibit time is
+        the least interval between any two transmissions of the PDO (CiA 301), the timer's too."""
+        if not self.event_timer_ms:
+            return None
+        return self.last_sent + max(self.event_timer_ms / 1000.0, self.inhibit_100us * 1e-4)
+
 
 class PdoEngine:
     """PDOs of one node (state: VectorStepNode)."""
@@ -175,9 +182,9 @@ class PdoEngine:
             # A change that went back within the inhibit time leaves nothing to send: a `due`
             # kept in the past made next_deadline() return it and the cycle loop spin.
             pdo.due = None
-            if pdo.event_timer_ms and now >= pdo.last_sent + pdo.event_timer_ms / 1000.0:
-                period_s = pdo.event_timer_ms / 1000.0
-                due = pdo.last_sent + period_s
+            due = pdo.timer_due()
+            if due is not None and now >= due:
+                period_s = due - pdo.last_sent
                 self._send_tpdo(pdo, now, data)
                 if now - due < period_s:
                     pdo.last_sent = due       # a late wake-up does not shift the timer's phase

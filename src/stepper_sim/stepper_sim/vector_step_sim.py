@@ -168,8 +168,9 @@ class VectorStepNode(NmtSlave, SdoServer, PdoEngine, AecDrive):
                 if pdo.valid and pdo.trans_type >= 0xFE:
                     if pdo.due is not None:
                         times.append(pdo.due)
-                    if pdo.event_timer_ms:
-                        times.append(pdo.last_sent + pdo.event_timer_ms / 1000.0)
+                    timer_due = pdo.timer_due()
+                    if timer_due is not None:
+                        times.append(timer_due)
         life = self._life_time_s()
         if life and self.guard_seen is not None:
             times.append(self.guard_seen + life)
