@@ -31,7 +31,8 @@ its commands.
     publishes (rclpy), and (X-PLUS MT) the project's driver polling without ROS.
 
 Run: source scripts/env.sh && python scripts/bench_command_path.py [--vendor xplus_mt ...]
-     [--part latency rate cpu] [--commands N] [--window S] [--json out.json]
+     [--part latency rate cpu] [--commands N] [--window S] [--owner-priority N]
+     [--json out.json]      (--owner-priority: latency with the node's bus owner on SCHED_FIFO)
 "Before" figures: run this file from another work tree's environment, e.g.
      git worktree add ../before 4a9d1a6 (built there), then
      cd ../before && source scripts/env.sh && python ../main/scripts/bench_command_path.py
@@ -442,7 +443,8 @@ def in_flight(txn: dict[str, list[float]]) -> tuple[str, float | None]:
 
 
 # ----------------------------------------------------------------------------- part: latency
-def bench_latency(v: Vendor, ros: RosClient, log_dir: pathlib.Path, n: int) -> dict:
+def bench_latency(v: Vendor, ros: RosClient, log_dir: pathlib.Path, n: int,
+                  owner_priority: int = 0) -> dict:
     parse = {'xplus_mt': parse_tcp, 'rd4': parse_rtu, 'xmind_k': parse_ascii,
              'vector_step': parse_can}[v.key]
     wire = Wire(parse)
@@ -459,7 +461,8 @@ def bench_latency(v: Vendor, ros: RosClient, log_dir: pathlib.Path, n: int) -> d
     try:
         overrides = start_sim_line(s, wire)
         s.add(Helper(['floor', FLOOR_TOPIC], log_dir, f'{v.key}_floor', on_floor))
-        s.start_node(CONFIG / f'{v.key}.yaml', overrides)
+        priority = ['-p', f'owner_thread_priority:={owner_priority}'] if owner_priority else []
+        s.start_node(CONFIG / f'{v.key}.yaml', overrides + priority)
         ros.subscribe(DriveStatus, f'{ns}/status')
         wait_for(running(s.node, lambda: getattr(ros.latest.get(f'{ns}/status'), 'connected',
                                                  False)), 60, f'{v.title} axis1 connected')
@@ -519,6 +522,7 @@ def bench_latency(v: Vendor, ros: RosClient, log_dir: pathlib.Path, n: int) -> d
     floor = [floor_t[i] - t for i, t in floor_pub.items() if i in floor_t]
     txn = transaction_times(v, wire, [(t, f) for t, _, f in pubs])
     res = {'vendor': v.key, 'commands': n, 'missed': missed, 'rate_hz': rate_hz,
+           'owner_priority': owner_priority,
            'duration_s': duration, 'load': load, 'cores': os.cpu_count(),
            'drives': len(node_cfg['drives']),
            'floor': floor, 'target': target_lat, 'first': first_lat, 'preamble': preamble,
@@ -540,7 +544,9 @@ def report_latency(v: Vendor, r: dict) -> None:
     print(f'\n== command -> wire, {v.title} [{r["cores"]} cores, load {r["load"]:.2f}]')
     print(f'   {v.line}; node at its configured {r["rate_hz"]:g} Hz with {r["drives"]} drives, '
           f'axis1 enabled; {r["commands"]} position_command ({len(r["target"])} seen on the '
-          f'wire) in {r["duration_s"]:.0f} s')
+          f'wire) in {r["duration_s"]:.0f} s; bus owner '
+          + (f'on SCHED_FIFO {r["owner_priority"]}' if r.get('owner_priority')
+             else 'on the normal scheduler'))
     print('   line transactions outside the commands, at the probe (median ms, n): '
           + ', '.join(f'{k} {ms(statistics.median(d))} ({len(d)})'
                       for k, d in sorted(r['txn'].items(), key=lambda kd: -len(kd[1]))[:6]))
@@ -896,6 +902,8 @@ def main() -> int:
                     help='commands per vendor (default: 200, RD4 150, X-MIND K 100)')
     ap.add_argument('--seconds', type=float, default=5.0, help='rate window [s]')
     ap.add_argument('--window', type=float, default=5.0, help='CPU window [s]')
+    ap.add_argument('--owner-priority', type=int, default=0,
+                    help='latency: the node with -p owner_thread_priority:=N (SCHED_FIFO)')
     ap.add_argument('--json', type=pathlib.Path, help='write every figure to this file')
     args = ap.parse_args()
     log_dir = pathlib.Path(tempfile.mkdtemp(prefix='bench_cp_'))
@@ -918,7 +926,7 @@ def main() -> int:
                 v = VENDORS[key]
                 if part == 'latency':
                     jobs.append(('latency', key, lambda v=v: bench_latency(
-                        v, ros, log_dir, args.commands or v.commands)))
+                        v, ros, log_dir, args.commands or v.commands, args.owner_priority)))
                 elif key != 'vector_step':
                     jobs.append(('rate', key, lambda v=v: bench_rate(v, ros, log_dir,
                                                                      args.seconds)))

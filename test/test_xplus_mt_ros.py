@@ -5,6 +5,8 @@ true position topic and fault-injection service play the part of the real world.
 """
 
 import math
+import os
+import pathlib
 import time
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
@@ -14,6 +16,7 @@ from rosharness import (CONFIG, MIDDLEWARE_S, DriveBench, Track, bad_parameter_o
 from std_msgs.msg import Float64
 from std_srvs.srv import SetBool
 from stepper_drivers_msgs.srv import ReadRegister, WriteRegister
+from stepper_sim.harness import fifo_allowed
 
 NODE = '/xplus_mt_node'
 SIM = '/xplus_mt_sim'
@@ -485,3 +488,25 @@ def test_a_velocity_write_whose_reply_is_lost_is_still_watched(procs, ros, tmp_p
     bound_s = 0.01 + 3.0 / 200.0 + 0.02 + Track.SAMPLE_S + MIDDLEWARE_S
     assert 0.5 <= reconnected_at - t_cmd          # the write's timeout, then the reconnect
     assert still_at - reconnected_at <= bound_s, (still_at - reconnected_at, bound_s)
+
+
+def test_owner_thread_priority_runs_the_bus_owner_on_sched_fifo(procs, ros, tmp_path):
+    """-p owner_thread_priority:=10: one thread of the node, its bus owner (one bus), is on
+    SCHED_FIFO at priority 10, and the node moves a drive as before. Where the machine refuses
+    (no CAP_SYS_NICE, no rtprio limit), the node says so and no thread is."""
+    bench = Bench(procs, ros, tmp_path, node_args=('-p', 'owner_thread_priority:=10'))
+    fifo = {}
+    for task in (pathlib.Path('/proc') / str(bench.node.pid) / 'task').iterdir():
+        fields = (task / 'stat').read_text().rsplit(')', 1)[1].split()   # from field 3 on
+        policy, rt_priority = int(fields[41 - 3]), int(fields[40 - 3])
+        if policy == os.SCHED_FIFO:
+            fifo[task.name] = rt_priority
+    if fifo_allowed(10):
+        assert list(fifo.values()) == [10], fifo
+    else:
+        assert not fifo
+        bench.node.wait_line('owner_thread_priority 10: SCHED_FIFO refused', 5.0)
+    bench.enable('axis1')
+    bench.command('axis1', 'position_command', 1.0)
+    bench.status('axis1', lambda m: not m.moving and abs(m.position - 1.0) < 1e-3,
+                 what='axis1 at 1.0 rad')

@@ -43,6 +43,7 @@ import concurrent.futures
 import dataclasses
 import logging
 import math
+import os
 import threading
 import time
 import traceback
@@ -265,7 +266,23 @@ class BusSupervisor:
     def _log_event(self, level: str, drive: str, text: str) -> None:
         getattr(logger, level)('%s: %s', drive, text)
 
+    def _set_priority(self) -> None:
+        """SCHED_FIFO for this thread when asked (owner_thread_priority): the owner then runs as
+        soon as a command wakes it, not when the scheduler gets round to it (docs/benchmarks.md:
+        the owner's wake-up was most of the command path's tail). A refusal is not an error:
+        the bus works as well, only later on a loaded machine."""
+        priority = int(self.settings.get('owner_thread_priority', 0))
+        if not priority:
+            return
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+        except OSError as exc:
+            self.on_event('warning', self.name, f'owner_thread_priority {priority}: SCHED_FIFO '
+                          f'refused ({exc.strerror}; needs CAP_SYS_NICE or an rtprio limit): '
+                          'the bus owner runs on the normal scheduler')
+
     def _run(self) -> None:
+        self._set_priority()
         try:
             while True:
                 with self._cv:

@@ -9,6 +9,7 @@ simulators elsewhere; this file tests the scheduling that sits above all of them
 from __future__ import annotations
 
 import concurrent.futures
+import os
 import threading
 import time
 
@@ -19,7 +20,7 @@ from stepper_drivers.drive import (Bus, Drive, DriveError, DriveState, IdentityE
 from stepper_drivers import supervisor
 from stepper_drivers.supervisor import (COMMAND, MAINTENANCE, STREAM, URGENT, BusSupervisor,
                                         Cancelled, NotConnected, Superseded)
-from stepper_sim.harness import wait_for
+from stepper_sim.harness import fifo_allowed, wait_for
 
 TX_S = 0.01            # one transaction on the scripted line
 RATE_HZ = 20.0         # poll rate: a 50 ms period, much longer than a transaction
@@ -498,3 +499,32 @@ def test_an_owner_that_fails_stops_its_drives_says_why_and_ends_once():
     assert len(line.calls()) == on_wire
     with pytest.raises(Cancelled):
         result(sup.submit('axis1', COMMAND, drives['axis1'].fault_reset, 'late'))
+
+
+@pytest.mark.parametrize('priority', [0, 10])
+def test_owner_thread_priority_puts_the_owner_alone_on_sched_fifo(bus, priority):
+    """owner_thread_priority: the owner thread on SCHED_FIFO at that priority (where this process
+    may; otherwise the warning of the refusal below), no other thread; 0: nothing changes."""
+    sup, _, drives = bus(owner_thread_priority=priority)
+    owner = sup._thread.native_id
+    fifo = priority and fifo_allowed(priority)
+    assert os.sched_getscheduler(owner) == (os.SCHED_FIFO if fifo else os.SCHED_OTHER)
+    if fifo:
+        assert os.sched_getparam(owner).sched_priority == priority
+    assert os.sched_getscheduler(threading.get_native_id()) == os.SCHED_OTHER
+    assert bool(priority and not fifo) == any('owner_thread_priority' in e[2] for e in sup.events)
+    assert result(sup.submit('axis1', COMMAND, lambda: drives['axis1'].move_to(5, None),
+                             'move')) is None
+
+
+def test_a_refused_owner_thread_priority_is_a_warning_and_the_bus_works(bus):
+    """A refused SCHED_FIFO (here a priority the kernel does not have, which fails for root too;
+    the node's parameter allows 1..99) is one warning naming the parameter and why, and the
+    owner runs on the normal scheduler."""
+    sup, _, drives = bus(owner_thread_priority=100)
+    assert os.sched_getscheduler(sup._thread.native_id) == os.SCHED_OTHER
+    (warning,) = [e for e in sup.events if 'owner_thread_priority' in e[2]]
+    assert warning[0] == 'warning' and 'owner_thread_priority 100: SCHED_FIFO refused' in \
+        warning[2], warning
+    assert result(sup.submit('axis1', COMMAND, lambda: drives['axis1'].move_to(5, None),
+                             'move')) is None

@@ -128,3 +128,21 @@ class Proc:
             os.killpg(self.proc.pid, signal.SIGKILL)
             self.proc.wait(timeout=5)
         self.log_file.close()
+
+
+def fifo_allowed(priority: int) -> bool:
+    """Whether this process may put a thread on SCHED_FIFO at `priority` (root, CAP_SYS_NICE,
+    an rtprio limit at least that high): the tests of owner_thread_priority expect either that
+    or its refusal. Probed in a thread of its own, which then ends."""
+    allowed = []
+
+    def probe():
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+            allowed.append(True)
+        except OSError:
+            allowed.append(False)
+    thread = threading.Thread(target=probe)
+    thread.start()
+    thread.join()
+    return allowed[0]
