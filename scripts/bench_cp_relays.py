@@ -258,20 +258,25 @@ def modbus_clients(ports: list[int]):
     return clients
 
 
+def poll_units(client, units: int) -> list[tuple[int, int]]:
+    """One FC03 of the state block per unit id 1..units: (position, statusword) each."""
+    values = []
+    for unit in range(1, units + 1):
+        r = client.read_holding_registers(XPLUS_STATE_BLOCK[0], count=XPLUS_STATE_BLOCK[1],
+                                          device_id=unit)
+        assert not r.isError(), r
+        w = r.registers
+        values.append((w[3] | w[4] << 16, w[0]))     # position 1004-1005 (little)
+    return values
+
+
 def run_bare_modbus(rate_hz: float, units: int, ports: list[int], ros: bool) -> None:
     clients = modbus_clients(ports)
     publish = ros_publisher(units * len(ports)) if ros else None
     out('ready')
     period_s, t_next = 1.0 / rate_hz, time.monotonic()
     while True:
-        values = []
-        for c in clients:
-            for unit in range(1, units + 1):
-                r = c.read_holding_registers(XPLUS_STATE_BLOCK[0], count=XPLUS_STATE_BLOCK[1],
-                                             device_id=unit)
-                assert not r.isError(), r
-                w = r.registers
-                values.append((w[3] | w[4] << 16, w[0]))     # position 1004-1005 (little)
+        values = [v for c in clients for v in poll_units(c, units)]
         if publish:
             publish(values)
         t_next = max(t_next + period_s, time.monotonic())
@@ -288,10 +293,7 @@ def run_bare_modbus_threads(rate_hz: float, units: int, ports: list[int]) -> Non
     def loop(c) -> None:
         t_next = t0
         while True:
-            for unit in range(1, units + 1):
-                r = c.read_holding_registers(XPLUS_STATE_BLOCK[0], count=XPLUS_STATE_BLOCK[1],
-                                             device_id=unit)
-                assert not r.isError(), r
+            poll_units(c, units)
             t_next = max(t_next + period_s, time.monotonic())
             time.sleep(max(0.0, t_next - time.monotonic()))
     threads = [threading.Thread(target=loop, args=(c,), daemon=True) for c in clients]
