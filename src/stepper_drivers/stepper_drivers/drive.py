@@ -300,3 +300,15 @@ class Vendor:
     # that sets one ('' and 0 mean "as the bus-level parameter of the same name") gets a bus of
     # its own, with its own owner thread; drives with equal values share one bus.
     drive_bus_params: tuple[str, ...] = ()
+
+    def with_defaults(self, params: Mapping[str, Any]) -> dict[str, Any]:
+        """One drive's `params` over this vendor's defaults: its bus-scope and drive-scope
+        ParamSpecs (not the drive_bus_params, whose drive-level '' / 0 means "as the bus"),
+        then drive_defaults. The node declares every parameter with these same defaults; a
+        drive made without it (scripts, benchmarks) gets them from here, the one place, and
+        not from literals in a drive class that can disagree with the docs (the Vector Step's
+        sync_timeout_s fell back to 0, its SYNC watchdog off, against a documented 0.5 s)."""
+        defaults = {p.name: p.default for p in self.params if p.scope == 'bus'}
+        defaults.update((p.name, p.default) for p in self.params
+                        if p.scope == 'drive' and p.name not in self.drive_bus_params)
+        return {**defaults, **self.drive_defaults, **params}

@@ -66,16 +66,17 @@ class Rd4Drive(Drive):
     """One RD4 unit on a Modbus RTU line (node ID = parameter `node_id`)."""
 
     def __init__(self, bus: Bus, name: str, params: Mapping[str, Any]):
+        params = VENDOR.with_defaults(params)
         super().__init__(bus, name, params)
         if not isinstance(bus, ModbusRtuBus):
             raise TypeError(f'{name}: the RD4 needs a ModbusRtuBus, got {type(bus).__name__}')
         self.rtu: ModbusRtuBus = bus
-        self.node_id = int(params.get('node_id', 1))
+        self.node_id = int(params['node_id'])
         self.address = self.node_id
-        self.watchdog = bool(params.get('watchdog', True))
-        self.hold_torque = bool(params.get('hold_torque', True))
-        self.velocity_source = str(params.get('velocity_source', 'register'))
-        self.steps_per_rev = float(params.get('steps_per_rev', 1024.0))
+        self.watchdog = bool(params['watchdog'])
+        self.hold_torque = bool(params['hold_torque'])
+        self.velocity_source = str(params['velocity_source'])
+        self.steps_per_rev = float(params['steps_per_rev'])
         self.cw: int | None = None            # the Control Word [0x2A] this driver last wrote
         # The intent every Control Word is composed from (never a value read from the unit).
         self._intent_enabled = False
@@ -815,8 +816,10 @@ PARAMS = (
 )
 
 
-def _number(params: Mapping[str, Any], name: str, default: Any, kind: type, allowed: str) -> Any:
-    """A numeric parameter, or ValueError naming it in one line."""
+def _number(params: Mapping[str, Any], name: str, kind: type, allowed: str,
+            default: Any = None) -> Any:
+    """A numeric parameter, or ValueError naming it in one line (`default` only for the
+    node's common parameters: the RD4's own come from VENDOR.with_defaults)."""
     value = params.get(name, default)
     try:
         if isinstance(value, bool) or (kind is int and float(value) != int(float(value))):
@@ -829,26 +832,27 @@ def _number(params: Mapping[str, Any], name: str, default: Any, kind: type, allo
 
 def _line_settings(params: Mapping[str, Any]) -> tuple:
     """(port, baud, parity, stopbits, timeout_s, retries) of the line, or ValueError."""
-    port = str(params.get('port', ''))
+    params = VENDOR.with_defaults(params)
+    port = str(params['port'])
     if not port:
         raise ValueError("parameter port: '' (allowed: a serial device such as /dev/ttyUSB0, "
                          'or a pyserial URL)')
     allowed_bauds = ', '.join(str(b) for b in BAUD_RATES)
-    baud = _number(params, 'baudrate', 9600, int, allowed_bauds)
+    baud = _number(params, 'baudrate', int, allowed_bauds)
     if baud not in BAUD_RATES:
         raise ValueError(f'parameter baudrate: {baud} is not an RD4 baud rate (allowed: '
                          f'{allowed_bauds}; §4.4.2 dip-switch)')
-    parity = str(params.get('parity', 'E')).upper()
+    parity = str(params['parity']).upper()
     if parity not in ('N', 'E', 'O'):
         raise ValueError(f'parameter parity: {parity!r} (allowed: N, E, O)')
-    stopbits = _number(params, 'stopbits', 0, int, '0, 1 or 2')
+    stopbits = _number(params, 'stopbits', int, '0, 1 or 2')
     need = 2 if parity == 'N' else 1
     if stopbits not in (0, need):
         raise ValueError(f'parameter stopbits: {stopbits} with parity {parity} is not the RD4 '
                          f'format (allowed: 0 = auto or {need}; §7.3.1 11-bit characters, '
                          '"the parity bit is replaced by a stop bit")')
-    timeout_s = _number(params, 'timeout_s', 0.5, float, 'seconds > 0')
-    retries = _number(params, 'retries', 1, int, '0..5')
+    timeout_s = _number(params, 'timeout_s', float, 'seconds > 0', 0.5)
+    retries = _number(params, 'retries', int, '0..5')
     if not timeout_s > 0 or not 0 <= retries <= 5:
         raise ValueError(f'parameter timeout_s/retries: {timeout_s:g} s / {retries} (allowed: '
                          'timeout_s > 0, retries 0..5)')
@@ -863,16 +867,17 @@ def make_bus(params: Mapping[str, Any]) -> ModbusRtuBus:
 def _check_drive(name: str, params: Mapping[str, Any]) -> None:
     """The rules of one unit's parameters (with the bus-level ones), or ValueError."""
     prefix = f'parameter drives.{name}.'
-    method = params.get('homing.method', HOMING_METHOD_PRESET)
+    params = VENDOR.with_defaults(params)
+    method = params['homing.method']
     if method != HOMING_METHOD_PRESET:
         raise ValueError(f'{prefix}homing.method: {method} is not possible on the RD4 (allowed: '
                          f'{HOMING_METHOD_PRESET} = preset at the current position; the RD4 has '
                          'no homing run)')
-    node_id = params.get('node_id', 1)
+    node_id = params['node_id']
     if isinstance(node_id, bool) or not isinstance(node_id, int) or not 1 <= node_id <= 247:
         raise ValueError(f'{prefix}node_id: {node_id!r} (allowed: 1..247, §4.4.1)')
-    rate = _number(params, 'publish_rate_hz', 50.0, float, 'Hz > 0')
-    if params.get('watchdog', True) and rate < MIN_WATCHDOG_POLL_HZ:
+    rate = _number(params, 'publish_rate_hz', float, 'Hz > 0', 50.0)
+    if params['watchdog'] and rate < MIN_WATCHDOG_POLL_HZ:
         raise ValueError(f'{prefix}watchdog: true needs publish_rate_hz >= '
                          f'{MIN_WATCHDOG_POLL_HZ:g} to keep the 1 s watchdog fed (now {rate:g})')
 

@@ -108,23 +108,26 @@ def parse_address(address: str) -> tuple[int, int]:
     return index, sub
 
 
-def _check_drive(name: str, params: Mapping[str, Any], master_heartbeat_ms: int) -> None:
-    """The rules of one drive's parameters (with the bus-level ones), or ValueError."""
-    bitrate = int(params.get('can.bitrate', 125000))
+def _check_drive(name: str, params: Mapping[str, Any], master_heartbeat_ms: int,
+                 sync_period_s: float) -> None:
+    """The rules of one drive's parameters, or ValueError; `master_heartbeat_ms` and
+    `sync_period_s` are those of its bus (a drive made on a bus checks against what that bus
+    produces, not against its own copy of the bus parameters)."""
+    params = VENDOR.with_defaults(params)
+    bitrate = int(params['can.bitrate'])
     if bitrate not in vm.BITRATES:
         raise ValueError(f'can.bitrate: {bitrate} is not a Vector Step bit rate (allowed: '
                          f'{", ".join(str(b) for b in vm.BITRATES)}; Rcanbaud codes 0..7)')
-    method = int(params.get('homing.method', 35))
+    method = int(params['homing.method'])
     if method not in vm.HOMING_METHODS:
         raise ValueError(f'drives.{name}.homing.method: {method} is not a Vector Step homing '
                          f'method (allowed: {vm.HOMING_METHODS_TEXT}; see 0x6098)')
-    heartbeat_ms = int(params.get('heartbeat_period_ms', 100))
-    heartbeat_timeout_s = float(params.get('heartbeat_timeout_s', 1.0))
+    heartbeat_ms = int(params['heartbeat_period_ms'])
+    heartbeat_timeout_s = float(params['heartbeat_timeout_s'])
     if heartbeat_ms and heartbeat_timeout_s * 1000.0 <= heartbeat_ms:
         raise ValueError(f'drives.{name}.heartbeat_timeout_s: {heartbeat_timeout_s} '
                          f'must exceed the heartbeat period ({heartbeat_ms} ms)')
-    sync_timeout_s = float(params.get('sync_timeout_s', 0.0))
-    sync_period_s = float(params.get('can.sync_period_s', 0.0))
+    sync_timeout_s = float(params['sync_timeout_s'])
     if sync_timeout_s and not sync_period_s:
         raise ValueError(f'drives.{name}.sync_timeout_s: {sync_timeout_s:g} needs the '
                          'SYNC of this node (can.sync_period_s > 0); 0 leaves 0x1006 off')
@@ -141,13 +144,13 @@ def _check_drive(name: str, params: Mapping[str, Any], master_heartbeat_ms: int)
 def _node_id_errors(params: Mapping[str, Any]) -> list[str]:
     """Two drives with one node-ID, or a drive on the node's own heartbeat node-ID: the rules
     CanBus.claim applies when the drives are made (same messages)."""
-    bus = param_rules.bus_params(params)
+    bus = VENDOR.with_defaults(param_rules.bus_params(params))
     taken: dict[int, str] = {}
-    if int(bus.get('can.master_heartbeat_ms', 0)):
-        taken[int(bus.get('can.master_node_id', 127))] = MASTER
+    if int(bus['can.master_heartbeat_ms']):
+        taken[int(bus['can.master_node_id'])] = MASTER
     errors = []
     for name in param_rules.drive_names(params):
-        node_id = int(param_rules.drive_params(params, name).get('node_id', 1))
+        node_id = int(VENDOR.with_defaults(param_rules.drive_params(params, name))['node_id'])
         other = taken.setdefault(node_id, name)
         if other == MASTER:
             errors.append(f'drives.{name}.node_id: {node_id} is can.master_node_id, the '
@@ -163,35 +166,37 @@ def validate(params: Mapping[str, Any]) -> list[str]:
     """The Vector Step's parameter rules on the node's parameters (param_rules), at start-up
     and for every run-time change: node-IDs, and per drive bit rate, homing method, heartbeat,
     SYNC watchdog and the node's own heartbeat."""
-    master_heartbeat_ms = int(params.get('can.master_heartbeat_ms', 0))
+    bus = VENDOR.with_defaults(param_rules.bus_params(params))
     return _node_id_errors(params) + param_rules.check_each(
-        params, None, lambda name, view: _check_drive(name, view, master_heartbeat_ms))
+        params, None, lambda name, view: _check_drive(
+            name, view, int(bus['can.master_heartbeat_ms']), float(bus['can.sync_period_s'])))
 
 
 class VectorStepDrive(Drive):
     """One Vector Step on a CAN bus (node-ID = parameter `node_id`)."""
 
     def __init__(self, bus: Bus, name: str, params: Mapping[str, Any]):
+        params = VENDOR.with_defaults(params)
         super().__init__(bus, name, params)
         if not isinstance(bus, CanBus):
             raise TypeError(f'{name}: Vector Step needs a CanBus, got {type(bus).__name__}')
         self.can: CanBus = bus
-        self.node_id = int(params.get('node_id', 1))
+        self.node_id = int(params['node_id'])
         bus.claim(self.node_id, name)
         self.address = self.node_id
-        _check_drive(name, params, self.can.master_heartbeat_ms)
-        self.steps_per_rev = float(params.get('steps_per_rev', 3200.0))
-        self.heartbeat_ms = int(params.get('heartbeat_period_ms', 100))
-        self.heartbeat_timeout_s = float(params.get('heartbeat_timeout_s', 1.0))
-        self.sync_timeout_s = float(params.get('sync_timeout_s', 0.0))
+        _check_drive(name, params, self.can.master_heartbeat_ms, self.can.sync_period_s)
+        self.steps_per_rev = float(params['steps_per_rev'])
+        self.heartbeat_ms = int(params['heartbeat_period_ms'])
+        self.heartbeat_timeout_s = float(params['heartbeat_timeout_s'])
+        self.sync_timeout_s = float(params['sync_timeout_s'])
         # 0x1016:01 = node-ID << 16 | time [ms] [CONSUMER HEARTBEAT TIME]; 0 = not watched
         consumer_ms = MASTER_HEARTBEAT_PERIODS * self.can.master_heartbeat_ms
         self.consumer_heartbeat = self.can.master_node_id << 16 | consumer_ms \
             if consumer_ms else 0
-        self.event_timer_ms = int(params.get('tpdo_event_timer_ms', 100))
-        self.inhibit_100us = int(round(float(params.get('tpdo_inhibit_ms', 10.0)) * 10))
-        self.boot_timeout_s = float(params.get('boot_timeout_s', 2.0))
-        self.boot_retries = int(params.get('boot_retries', 3))
+        self.event_timer_ms = int(params['tpdo_event_timer_ms'])
+        self.inhibit_100us = int(round(float(params['tpdo_inhibit_ms']) * 10))
+        self.boot_timeout_s = float(params['boot_timeout_s'])
+        self.boot_retries = int(params['boot_retries'])
         eds = str(params.get('can.eds_file') or '') or str(vm.eds_path())
         self.link = RemoteDrive(bus, self.node_id, eds, name, emcy_text=vm.emcy_text)
         self.cia = cia402.Cia402Device(self._read_statusword, self._write_controlword,
@@ -1074,6 +1079,7 @@ PARAMS = (
 
 
 def make_bus(params: Mapping[str, Any]) -> CanBus:
+    params = VENDOR.with_defaults(params)
     return CanBus(interface=str(params['can.interface']), channel=str(params['can.channel']),
                   bitrate=int(params['can.bitrate']), host=str(params['can.host']),
                   port=int(params['can.port']), timeout_s=float(params['timeout_s']),

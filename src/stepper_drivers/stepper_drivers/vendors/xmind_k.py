@@ -197,6 +197,7 @@ class XmindKDrive(drive.Drive):
     (nothing written to the drive after a stop that nobody commanded again)."""
 
     def __init__(self, bus: XmindKBus, name: str, params: Mapping[str, Any]):
+        params = VENDOR.with_defaults(params)
         super().__init__(bus, name, params)
         self.number = int(params['address'])       # the drive address AA (§2.2.1)
         _check_address(name, self.number, bus.addresses, bus.url)
@@ -949,7 +950,7 @@ class XmindKDrive(drive.Drive):
 
 # ---------------------------------------------------------------------------------- vendor
 def make_bus(params: Mapping[str, Any]) -> XmindKBus:
-    return XmindKBus(params)
+    return XmindKBus(VENDOR.with_defaults(params))
 
 
 def make_drive(bus: XmindKBus, name: str, params: Mapping[str, Any]) -> XmindKDrive:

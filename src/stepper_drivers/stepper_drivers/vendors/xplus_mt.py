@@ -68,15 +68,16 @@ class XplusMtDrive(Drive):
     start_stop_steps_s = float(xm.START_STOP_MAX_HZ)     # §13 "Motion Profiles"
 
     def __init__(self, bus: Bus, name: str, params: Mapping[str, Any]):
+        params = VENDOR.with_defaults(params)
         super().__init__(bus, name, params)
         if not isinstance(bus, ModbusTcpBus):
             raise TypeError(f'{name}: X-PLUS MT needs a ModbusTcpBus, got {type(bus).__name__}')
         self.mb: ModbusTcpBus = bus
-        self.unit_id = int(params.get('unit_id', 1))
+        self.unit_id = int(params['unit_id'])
         self.address = self.unit_id
-        self.word_order = str(params.get('word_order', 'little'))
-        self.watchdog_ms = int(params.get('watchdog_ms', WATCHDOG_MS_DEFAULT))
-        self.input_config = int(params.get('input_config', -1))
+        self.word_order = str(params['word_order'])
+        self.watchdog_ms = int(params['watchdog_ms'])
+        self.input_config = int(params['input_config'])
         self.cia = cia402.Cia402Device(self._read_statusword, self._write_controlword,
                                        min_delay_s=CW_SW_DELAY_S, name=name)
         self._split_reads = False
@@ -640,7 +641,7 @@ DRIVE_BUS_PARAMS = ('host', 'port')
 def make_bus(params: Mapping[str, Any]) -> ModbusTcpBus:
     """Bus params 'host', 'port' and the common 'timeout_s'. For a drive with its own host or
     port the node passes the bus params with the drive's non-empty values in their place."""
-    return make_tcp_bus(params)
+    return make_tcp_bus(VENDOR.with_defaults(params))
 
 
 def _check_choice(key: str, value: Any, allowed: Sequence[Any], what: str) -> None:
@@ -651,9 +652,10 @@ def _check_choice(key: str, value: Any, allowed: Sequence[Any], what: str) -> No
 
 def _check_link(params: Mapping[str, Any]) -> None:
     """What protocol.modbus_tcp.make_bus refuses, without making the bus (same messages)."""
-    if not str(params.get('host', '127.0.0.1')).strip():
+    params = VENDOR.with_defaults(params)
+    if not str(params['host']).strip():
         raise ValueError("host: '' (allowed: an IP address or host name of the Modbus server)")
-    port = params.get('port', 502)
+    port = params['port']
     if isinstance(port, bool) or not isinstance(port, int) or not 1 <= port <= 65535:
         raise ValueError(f'port: {port!r} (allowed: a TCP port 1..65535)')
 
@@ -661,21 +663,22 @@ def _check_link(params: Mapping[str, Any]) -> None:
 def _check_drive(name: str, params: Mapping[str, Any]) -> None:
     """The rules of one drive's parameters (with the bus-level ones), or ValueError."""
     prefix = f'drives.{name}.'
-    method = params.get('homing.method', 35)
+    params = VENDOR.with_defaults(params)
+    method = params['homing.method']
     if method not in xm.HOMING_METHODS:
         raise ValueError(f'{prefix}homing.method: {method} is not a homing method of the '
                          f'X-PLUS MT (allowed: {", ".join(map(str, xm.HOMING_METHODS))})')
-    unit_id = params.get('unit_id', 1)
+    unit_id = params['unit_id']
     if not isinstance(unit_id, int) or not 0 <= unit_id <= 255:
         raise ValueError(f'{prefix}unit_id: {unit_id!r} is not a Modbus unit id '
                          f'(allowed: 0..255)')
-    _check_choice('word_order', params.get('word_order', 'little'), xm.WORD_ORDERS,
+    _check_choice('word_order', params['word_order'], xm.WORD_ORDERS,
                   'a word order')
-    steps = params.get('steps_per_rev', xm.STEPS_PER_REV)
+    steps = params['steps_per_rev']
     if float(steps) != xm.STEPS_PER_REV:
         raise ValueError(f'{prefix}steps_per_rev: {steps:g} is not the X-PLUS MT resolution '
                          f'(allowed: {xm.STEPS_PER_REV}, fixed by STEP_REVOLUTION (1081))')
-    watchdog_ms = params.get('watchdog_ms', WATCHDOG_MS_DEFAULT)
+    watchdog_ms = params['watchdog_ms']
     if not isinstance(watchdog_ms, int) or not (
             watchdog_ms == 0 or WATCHDOG_MIN_MS <= watchdog_ms <= REG['COUNTER_WATCHDOG'].max):
         raise ValueError(f'{prefix}watchdog_ms: {watchdog_ms!r} (allowed: 0 = off, or '
@@ -687,7 +690,7 @@ def _check_drive(name: str, params: Mapping[str, Any]) -> None:
                          f'{WATCHDOG_MIN_POLLS} poll periods at publish_rate_hz {rate:g} (the '
                          f'polls feed the drive watchdog); allowed: >= '
                          f'{math.ceil(WATCHDOG_MIN_POLLS * 1000.0 / rate)} ms, or 0 = off')
-    input_config = params.get('input_config', -1)
+    input_config = params['input_config']
     if not isinstance(input_config, int) or not (
             input_config == -1 or REG['INPUT_CONFIG'].accepts(input_config)):
         raise ValueError(f'{prefix}input_config: {input_config!r} (allowed: -1 = leave the drive '
