@@ -117,6 +117,9 @@ class DriveState:
     velocity_valid: bool = True       # False where the drive cannot report velocity
     position_estimated: bool = False  # True where position is estimated (X-MIND K while busy)
     effort: float | None = None       # motor current in A where the drive reports it
+    # time.monotonic() at which position_steps was true, where the driver knows it to be
+    # earlier than the end of the poll (a TxPDO held back by its inhibit time); None: the poll
+    measured_at_s: float | None = None
 
 
 @dataclasses.dataclass(frozen=True)

@@ -576,7 +576,8 @@ class BusSupervisor:
             self._drive_lost(slot, f'unexpected error {exc!r}')
             return
         slot.state = state
-        slot.state_t = self.clock()
+        # when the position was true (the trajectory feedback compares the plan at that time)
+        slot.state_t = self.clock() if state.measured_at_s is None else state.measured_at_s
         slot.polls += 1
         self._resolve_waiters(slot, True)
         self._cycle_polled.add(slot.name)

@@ -64,6 +64,7 @@ class ScriptDrive(Drive):
         self.fail_always: dict[str, Exception] = {}
         self.velocity = 0.0
         self.enabled = True
+        self.measured_at_s = None              # DriveState.measured_at_s of the next polls
 
     def _tx(self, call, *args):
         exc = self.fail.pop(call, None) or self.fail_always.get(call)
@@ -78,7 +79,8 @@ class ScriptDrive(Drive):
     def read_state(self):
         self._tx('read_state')
         return DriveState(state=State.OPERATION_ENABLED, enabled=self.enabled,
-                          moving=self.velocity != 0.0, velocity_steps_s=self.velocity)
+                          moving=self.velocity != 0.0, velocity_steps_s=self.velocity,
+                          measured_at_s=self.measured_at_s)
 
     def enable(self):
         for _ in range(5):               # a state-machine walk: five transactions
@@ -453,6 +455,24 @@ def test_a_confirmation_does_not_disarm_a_velocity_accepted_after_it(bus):
     assert sup.watchdog_armed('axis1')
     wait_for(lambda: _stop_time(line, 'axis1', t_vel), timeout_s + 1.0, 'watchdog stop')
     wait_for(lambda: drive.velocity == 0.0, 5 * TX_S, 'the stop done')
+
+
+def test_the_state_time_is_when_the_drive_says_its_position_was_true(bus):
+    """slot.state_t (the time the trajectory feedback evaluates the plan at) is the drive's
+    `measured_at_s` where it gives one (a Vector Step position held back by the inhibit time),
+    else the end of the poll."""
+    sup, line, drives = bus(1)
+    slot = sup.slots['axis1']
+    measured = time.monotonic() - 0.123
+    drives['axis1'].measured_at_s = measured
+    polls = slot.polls
+    wait_for(lambda: slot.polls > polls + 1, 4 / RATE_HZ, 'a poll with measured_at_s')
+    assert slot.state_t == measured
+    drives['axis1'].measured_at_s = None
+    t0 = time.monotonic()
+    polls = slot.polls
+    wait_for(lambda: slot.polls > polls + 1, 4 / RATE_HZ, 'a poll without')
+    assert t0 <= slot.state_t <= time.monotonic()
 
 
 def test_when_polls_overrun_every_drive_gets_its_turn(bus):

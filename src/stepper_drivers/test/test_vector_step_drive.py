@@ -809,3 +809,37 @@ def test_the_position_and_velocity_txpdos_are_spaced_by_the_inhibit_time(tmp_pat
                 assert frames > 1.5 * elapsed_s / 0.01, (hex(cob), frames, elapsed_s)
     finally:
         bench.close()
+
+
+def test_a_position_held_back_by_the_inhibit_time_carries_the_time_it_was_true(tmp_path):
+    """While the axis moves, TxPDO2 (statusword + position) goes out at most once per inhibit
+    time, so a poll reads a position up to that old. read_state gives the frame's reception as
+    `measured_at_s` (the bus owner's state time; the trajectory feedback compares the plan at
+    that time): at a steady jog the position then matches the simulator's true position at
+    `measured_at_s`, where against the poll's own time it lags by up to a whole inhibit time."""
+    inhibit_s, v = 0.05, 6400.0                          # a long inhibit: the lag is plain
+    bench = Bench(tmp_path, tpdo_inhibit_ms=inhibit_s * 1000.0)
+    try:
+        d = bench.connect('axis1')
+        complete(d.enable())
+        complete(d.set_velocity(v, MOTION))
+        wait(lambda: snap(d).velocity_steps_s == v, what='at speed')
+        at_measured, at_poll = [], []
+        for _ in range(30):
+            s = snap(d)
+            now = time.monotonic()
+            true_now = bench.sim.true_position_steps('axis1')
+            if s.measured_at_s is None:                  # a frame came during the read
+                continue
+            assert now - inhibit_s <= s.measured_at_s <= now
+            at_measured.append(abs(s.position_steps - (true_now - v * (now - s.measured_at_s))))
+            at_poll.append(true_now - s.position_steps)
+            time.sleep(inhibit_s / 3.7)                  # samples spread over the frame period
+        assert len(at_measured) >= 20, at_measured
+        # the simulator's cycle (2 ms) plus the frame's way through the broker: a few ms of lag
+        at_measured.sort()
+        at_poll.sort()
+        assert at_measured[len(at_measured) // 2] <= v * 0.006, at_measured
+        assert at_poll[len(at_poll) // 2] >= v * inhibit_s / 4, at_poll   # what it corrects
+    finally:
+        bench.close()

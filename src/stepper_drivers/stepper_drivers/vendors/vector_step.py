@@ -69,6 +69,8 @@ BURST_SLACK_S = 0.02
 # The TxPDOs that tpdo_inhibit_ms spaces out: the two whose values change all through a motion
 # (position, velocity); TxPDO1 and TxPDO4 still carry a statusword change at once.
 INHIBITED_TPDOS = (2, 3)
+POSITION_TPDO = next(n for n, entries in enumerate(vm.DRIVER_TPDOS, 1)
+                     if any(index == vm.POSITION_ACTUAL_VALUE for index, _, _ in entries))
 # 0x1016 consumer time: this many periods of the node's own heartbeat ("deve essere settato piu'
 # alto del tempo impostato nel generatore" [CONSUMER HEARTBEAT TIME]). 10: 1 s at 100 ms, as the
 # node's own heartbeat_timeout_s; 3 (300 ms) tripped on a loaded 2-core machine when the python-can
@@ -214,6 +216,8 @@ class VectorStepDrive(Drive):
         self._warnings: tuple[float, tuple[str, ...]] = (0.0, ())
         self._pdo_statusword: dict[int, int] = {}    # COB-ID -> statusword of its last TxPDO
         self._statusword_seen = (0, 0.0)             # (newest TxPDO statusword, when it came)
+        self._position_cob = vm.PDO_COB_BASES_TX[POSITION_TPDO - 1] + self.node_id
+        self._position_rx: tuple[float, int] | None = None   # (reception, position): last TxPDO2
         self._burst_given_up: int | None = None
         self._ip_active = False            # start_interpolation done; no stop or error since
 
@@ -455,6 +459,9 @@ class VectorStepDrive(Drive):
         # (receive thread) every DRIVER_TPDOS mapping starts with the statusword
         sw = int.from_bytes(bytes(pdo_map.data[:2]), 'little')
         self._pdo_statusword[pdo_map.cob_id] = sw
+        if pdo_map.cob_id == self._position_cob:       # statusword, then the position (i32)
+            self._position_rx = (time.monotonic(),
+                                 int.from_bytes(bytes(pdo_map.data[2:6]), 'little', signed=True))
         if sw != self._statusword_seen[0]:
             self._statusword_seen = (sw, time.monotonic())
 
@@ -490,6 +497,7 @@ class VectorStepDrive(Drive):
                                 if pdo.enabled}
         self._statusword_seen = (sw, time.monotonic())
         self._burst_given_up = None
+        self._position_rx = None
 
     def close(self) -> None:
         """Orderly end (the node shuts down): disarm the drive-side watchdogs, so that a drive
@@ -569,7 +577,22 @@ class VectorStepDrive(Drive):
             target_reached=bool(sw & cia402.SW_BIT_TARGET_REACHED),
             homed=bool(rstsflg & vm.RSTSFLG_HOMED), homing=homing, fault=fault,
             fault_code=code, fault_text=text, alarms=tuple(extra),
-            mode=mode_text, status_word=sw, position_steps=position, velocity_steps_s=velocity_hz)
+            mode=mode_text, status_word=sw, position_steps=position, velocity_steps_s=velocity_hz,
+            measured_at_s=self._position_measured_at_s(position))
+
+    def _position_measured_at_s(self, position: int) -> float | None:
+        """When the cached position was true. A moving axis' position TxPDO goes out at most
+        once per inhibit time (tpdo_inhibit_ms), so a poll may read a value up to that old: its
+        time is the frame's reception. A frame older than the inhibit time leaves no change held
+        back ([0x1800+(No.PDO-1):03] "Inibisce la trasmissione dei PDO per il tempo impostato": a
+        change is sent once the inhibit time ends): the value is current, None (the poll's
+        time). A frame that came between the caller's read of `position` and this is not it:
+        None."""
+        rx = self._position_rx
+        if rx is None or rx[1] != position or time.monotonic() - rx[0] >= \
+                self.inhibit_100us * 1e-4:
+            return None
+        return rx[0]
 
     def _homing_state(self, sw: int, mode: int) -> HomingState:
         """AEC homing bits: 12 "Home eseguito", 13 "Errore in azzeramento" ([STATUSWORD]).
