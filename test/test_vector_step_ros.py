@@ -8,6 +8,7 @@ fault; the last test stops and restarts the simulator and finally the node.
 """
 
 import math
+import pathlib
 import time
 
 import can
@@ -17,7 +18,10 @@ from rosharness import (DriveBench, Procs, RosClient, Track, bad_parameter_outpu
                         watchdog_bound_s)
 from std_srvs.srv import SetBool
 from stepper_sim.socketcand_broker import SocketcandBroker
+from stepper_drivers.params import BUS_PARAMS
+from stepper_drivers_msgs.msg import DriveStatus
 from stepper_drivers_msgs.srv import ReadRegister, WriteRegister
+import yaml
 
 STEPS_PER_RAD = 3200 / (2 * math.pi)
 
@@ -120,6 +124,28 @@ def test_enable_does_not_move_and_a_move_reaches_the_target(rig):
     js = rig.ros.wait_msg('/joint_states', lambda m: abs(m.position[0] - start - 3.0) < 1e-3)
     assert js.position[1] == pytest.approx(rig.status('axis2').position, abs=1e-9)
     rig.idle('axis1')
+
+
+def test_an_idle_drive_reports_at_the_status_rate_not_at_each_of_its_txpdos(rig):
+    """A status goes out at a change and at status_rate_hz otherwise. An idle Vector Step still
+    sends TxPDO2 every tpdo_event_timer_ms (100 ms); those frames change nothing, so they send no
+    status. (DriveState.measured_at_s, the time of such a frame, once counted as a change: every
+    idle drive reported at 20 Hz.)"""
+    cfg = yaml.safe_load((pathlib.Path(__file__).parents[1] / 'config' / 'vector_step.yaml')
+                         .read_text())['vector_step_node']['ros__parameters']
+    rate_hz = cfg.get('status_rate_hz',
+                      next(p.default for p in BUS_PARAMS if p.name == 'status_rate_hz'))
+    window_s = 3.0 / rate_hz
+    rig.status('axis1', lambda m: not m.moving, what='axis1 standing')
+    got = []
+    sub = rig.ros.node.create_subscription(DriveStatus, '/vector_step_node/axis1/status',
+                                           lambda m: got.append(m.position_steps), 50)
+    try:
+        time.sleep(window_s)                         # the window the messages are counted in
+    finally:
+        rig.ros.node.destroy_subscription(sub)
+    assert len(got) <= window_s * rate_hz + 1, (len(got), window_s)
+    assert len(set(got)) == 1, got                   # nothing changed: standing
 
 
 def test_jog_runs_in_aec_velocity_mode_and_the_watchdog_stops_it(rig):

@@ -118,8 +118,9 @@ class DriveState:
     position_estimated: bool = False  # True where position is estimated (X-MIND K while busy)
     effort: float | None = None       # motor current in A where the drive reports it
     # time.monotonic() at which position_steps was true, where the driver knows it to be
-    # earlier than the end of the poll (a TxPDO held back by its inhibit time); None: the poll
-    measured_at_s: float | None = None
+    # earlier than the end of the poll (a TxPDO held back by its inhibit time); None: the poll.
+    # Not part of equality: a snapshot with the same values is no change (status on change).
+    measured_at_s: float | None = dataclasses.field(default=None, compare=False)
 
 
 @dataclasses.dataclass(frozen=True)
