@@ -360,8 +360,9 @@ class Setup:
         return self.node
 
 
-def start_sim_line(s: Setup, wire: Wire | None) -> list[str]:
-    """The simulator (and the probe when wire is given); returns the node's -p overrides."""
+def start_sim_line(s: Setup, wire: Wire | None, link: Wire | None = None) -> list[str]:
+    """The simulator (and the probe when wire is given; Vector Step: `link`, a relay on the
+    node's own connection to the broker as well); returns the node's -p overrides."""
     v, d = s.v, s.log_dir
     if v.key == 'xplus_mt':
         port = free_port()
@@ -396,6 +397,9 @@ def start_sim_line(s: Setup, wire: Wire | None) -> list[str]:
     sim = s.proc([executable('stepper_sim', v.sim), '--ros-args', '--params-file',
                   str(CONFIG / 'vector_step_sim.yaml'), '-p', f'can.port:={port}'], 'sim')
     sim.wait_line('ready', 30)
+    if link is not None:
+        relay = s.add(Helper(['canlink', str(port)], d, f'{s.tag}_link', link.on_line))
+        return ['-p', f'can.port:={relay.head[0].split()[1]}']
     return ['-p', f'can.port:={port}']
 
 
@@ -444,10 +448,11 @@ def in_flight(txn: dict[str, list[float]]) -> tuple[str, float | None]:
 
 # ----------------------------------------------------------------------------- part: latency
 def bench_latency(v: Vendor, ros: RosClient, log_dir: pathlib.Path, n: int,
-                  owner_priority: int = 0) -> dict:
+                  owner_priority: int = 0, can_link: bool = False) -> dict:
     parse = {'xplus_mt': parse_tcp, 'rd4': parse_rtu, 'xmind_k': parse_ascii,
              'vector_step': parse_can}[v.key]
     wire = Wire(parse)
+    link = Wire(parse_can) if can_link and v.key == 'vector_step' else None
     floor_t: dict[int, float] = {}
 
     def on_floor(line: str) -> None:
@@ -459,7 +464,7 @@ def bench_latency(v: Vendor, ros: RosClient, log_dir: pathlib.Path, n: int,
     rate_hz = float(node_cfg['publish_rate_hz'])
     ns = f'/{v.node}/axis1'
     try:
-        overrides = start_sim_line(s, wire)
+        overrides = start_sim_line(s, wire, link)
         s.add(Helper(['floor', FLOOR_TOPIC], log_dir, f'{v.key}_floor', on_floor))
         priority = ['-p', f'owner_thread_priority:={owner_priority}'] if owner_priority else []
         s.start_node(CONFIG / f'{v.key}.yaml', overrides + priority)
@@ -519,6 +524,17 @@ def bench_latency(v: Vendor, ros: RosClient, log_dir: pathlib.Path, n: int,
         dump.append(f'{t_pub:.6f} {hit.t - t_pub:.6f} '
                     f'{"-" if first is None else f"{first.t - t_pub:.6f}"}\n')
     (log_dir / f'{v.key}_commands.txt').write_text(''.join(dump))
+    link_first, link_target = [], []
+    if link is not None:
+        with link.cv:
+            (log_dir / f'{v.key}_link.txt').write_text(''.join(
+                f'{r.t:.6f} {r.fc:03X} {r.data.hex()}\n' for r in link.reqs))
+    for t_pub, hit, _ in pubs if link is not None else ():
+        frame = link.wait(t_pub, v.is_target, 0.0) if hit is not None else None
+        if frame is not None and frame.t <= hit.t:
+            link_target.append(frame.t - t_pub)
+            first = next((r for r in link.between(t_pub, frame.t) if v.is_first(r)), frame)
+            link_first.append(first.t - t_pub)
     floor = [floor_t[i] - t for i, t in floor_pub.items() if i in floor_t]
     txn = transaction_times(v, wire, [(t, f) for t, _, f in pubs])
     res = {'vendor': v.key, 'commands': n, 'missed': missed, 'rate_hz': rate_hz,
@@ -526,7 +542,8 @@ def bench_latency(v: Vendor, ros: RosClient, log_dir: pathlib.Path, n: int,
            'duration_s': duration, 'load': load, 'cores': os.cpu_count(),
            'drives': len(node_cfg['drives']),
            'floor': floor, 'target': target_lat, 'first': first_lat, 'preamble': preamble,
-           'txn': txn, 'floor_missed': n - len(floor)}
+           'txn': txn, 'floor_missed': n - len(floor), 'link_first': link_first,
+           'link_target': link_target}
     report_latency(v, res)
     return res
 
@@ -571,6 +588,13 @@ def report_latency(v: Vendor, r: dict) -> None:
               f'{"met" if t99 <= goal else "NOT met"}')
     elif t99 is not None:
         print(f'   -> {v.target_text}: p50 {ms(t50)} ms, p99 {ms(t99)} ms')
+    l50, l99 = stats(r.get('link_first', []))
+    if l99 is not None and 'goal_first' in r:
+        print(f'   -> the same first frame on the node\'s own link (a relay between the node and '
+              f'the broker, as the X-PLUS MT\'s; n={len(r["link_first"])}): p50 {ms(l50)} ms, '
+              f'p99 {ms(l99)} ms; goal p99 <= {ms(r["goal_first"])} ms: '
+              f'{"met" if l99 <= r["goal_first"] else "NOT met"}. The broker\'s figures above '
+              'come after this relay\'s hop and its own fan-out')
     print(f'   before the bus owner (issue 9): {BEFORE["latency"][v.key]}; floor '
           f'{BEFORE["floor"]}')
 
@@ -904,6 +928,10 @@ def main() -> int:
     ap.add_argument('--window', type=float, default=5.0, help='CPU window [s]')
     ap.add_argument('--owner-priority', type=int, default=0,
                     help='latency: the node with -p owner_thread_priority:=N (SCHED_FIFO)')
+    ap.add_argument('--can-link', action='store_true',
+                    help='Vector Step latency: a relay on the node\'s own link to the broker as '
+                         'well (the X-PLUS MT\'s way of timing the frame); the broker\'s figures '
+                         'then include its hop')
     ap.add_argument('--json', type=pathlib.Path, help='write every figure to this file')
     args = ap.parse_args()
     log_dir = pathlib.Path(tempfile.mkdtemp(prefix='bench_cp_'))
@@ -926,7 +954,8 @@ def main() -> int:
                 v = VENDORS[key]
                 if part == 'latency':
                     jobs.append(('latency', key, lambda v=v: bench_latency(
-                        v, ros, log_dir, args.commands or v.commands, args.owner_priority)))
+                        v, ros, log_dir, args.commands or v.commands, args.owner_priority,
+                        args.can_link)))
                 elif key != 'vector_step':
                     jobs.append(('rate', key, lambda v=v: bench_rate(v, ros, log_dir,
                                                                      args.seconds)))

@@ -15,6 +15,10 @@ the same clock in every process of the machine):
         A <t> 0                        reply bytes from the simulator, forwarded
     can PORT                           a socketcand client on the broker at 127.0.0.1:PORT
         F <t> <cob-id hex> <data hex>  every frame another client sent, t = the broker's stamp
+    canlink UPSTREAM_PORT              socketcand relay 127.0.0.1:<port> -> the broker at
+                                       UPSTREAM_PORT, on the node's link as `tcp` is
+        F <t> <cob-id hex> <data hex>  a frame the node sent, t = its first byte read
+        A <t> <conn>                   bytes from the broker written back to the node
     floor TOPIC                        an rclpy subscriber (SingleThreadedExecutor, the node's
                                        QoS: depth 10, reliable) of std_msgs/Float64
         M <t> <data>
@@ -44,6 +48,7 @@ import termios
 import threading
 import time
 import tty
+from typing import Callable
 
 # Fast DDS discovery stays on this machine (the floor subscriber and the *-ros loops are nodes)
 os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
@@ -56,8 +61,11 @@ def out(line: str) -> None:
     sys.stdout.flush()
 
 
-# ------------------------------------------------------------------------------- Modbus TCP
-def run_tcp(upstream_port: int) -> None:
+# ---------------------------------------------------------------------- TCP relays (node link)
+def relay_tcp(upstream_port: int, on_requests: Callable[[float, int, bytes], bytes]) -> None:
+    """A TCP relay 127.0.0.1:<port> -> upstream: the node's bytes are forwarded first, then
+    `on_requests(t, conn, buffer)` prints what they complete and returns the rest; `A` lines
+    time the bytes going back to the node."""
     conns = [0]
 
     async def client(reader, writer):
@@ -72,15 +80,7 @@ def run_tcp(upstream_port: int) -> None:
             while data := await reader.read(4096):
                 now = time.monotonic()
                 up_w.write(data)               # forward first, then parse
-                buf += data
-                while len(buf) >= 12:          # MBAP (7) + fc + address + count/value
-                    length = struct.unpack('>H', buf[4:6])[0]
-                    if len(buf) < 6 + length:
-                        break
-                    frame, buf = buf[:6 + length], buf[6 + length:]
-                    unit, fc = frame[6], frame[7]
-                    address, count = struct.unpack('>HH', frame[8:12])
-                    out(f'Q {now:.6f} {conn} {unit} {fc} {address} {count}')
+                buf = on_requests(now, conn, buf + data)
             up_w.close()
 
         async def replies():
@@ -96,6 +96,30 @@ def run_tcp(upstream_port: int) -> None:
         async with server:
             await server.serve_forever()
     asyncio.run(serve())
+
+
+def modbus_requests(now: float, conn: int, buf: bytes) -> bytes:
+    while len(buf) >= 12:          # MBAP (7) + fc + address + count/value
+        length = struct.unpack('>H', buf[4:6])[0]
+        if len(buf) < 6 + length:
+            break
+        frame, buf = buf[:6 + length], buf[6 + length:]
+        unit, fc = frame[6], frame[7]
+        address, count = struct.unpack('>HH', frame[8:12])
+        out(f'Q {now:.6f} {conn} {unit} {fc} {address} {count}')
+    return buf
+
+
+def socketcand_sends(now: float, conn: int, buf: bytes) -> bytes:
+    """`< send 301 8 1f 0 ... >` from the node: an F line as the broker probe prints, its time
+    the relay's read (the node's frame on its link, before the broker's fan-out)."""
+    while (end := buf.find(b'>')) >= 0:
+        words, buf = buf[buf.find(b'<') + 1:end].split(), buf[end + 1:]
+        if len(words) >= 3 and words[0] == b'send':
+            n = int(words[2], 16)
+            data = bytes(int(b, 16) for b in words[3:3 + n])
+            out(f'F {now:.6f} {int(words[1], 16):03X} {data.hex()}')
+    return buf
 
 
 # ----------------------------------------------------------------------------------- serial
@@ -384,7 +408,9 @@ def run_bare_canopen(rate_hz: float, port: int, ids: list[int], ros: bool) -> No
 def main(argv: list[str]) -> int:
     kind, args = argv[0], argv[1:]
     if kind == 'tcp':
-        run_tcp(int(args[0]))
+        relay_tcp(int(args[0]), modbus_requests)
+    elif kind == 'canlink':
+        relay_tcp(int(args[0]), socketcand_sends)
     elif kind == 'pty':
         run_pty(args[0], args[1], int(args[2]))
     elif kind == 'can':
