@@ -75,6 +75,12 @@ class Axis:
     def position_steps(self) -> float:
         return float(self.sup.slots[self.drive_name].state.position_steps)
 
+    def sample(self) -> tuple[float, float]:
+        """(position, when it was true): the last poll's position and the bus owner's state
+        time (the poll's end, or the drive's own measurement time, DriveState.measured_at_s)."""
+        slot = self.sup.slots[self.drive_name]
+        return float(slot.state.position_steps), slot.state_t
+
     def moving(self) -> bool:
         return bool(self.sup.slots[self.drive_name].state.moving)
 
@@ -286,10 +292,15 @@ class Run:
                 self._stop_axes()
                 return _aborted(INVALID_GOAL, f'a segment failed: {fut.exception()}')
         now = self.follower.clock()
-        desired = self.desired_steps(now)
         for joint, tol in self.tol.path_steps.items():
-            if tol > 0 and joint in desired:
-                err = self.follower.axes[joint].position_steps() - desired[joint]
+            if tol > 0 and joint in self.follower.axes:
+                # the plan at the time the position was true, not now: a position up to a poll
+                # period old (and a Vector Step's TxPDO inhibit time) is no path error
+                position, at = self.follower.axes[joint].sample()
+                desired = self.desired_steps(min(at, now)).get(joint)
+                if desired is None:
+                    continue
+                err = position - desired
                 if abs(err) > tol:
                     self._stop_axes()
                     return _aborted(PATH_TOLERANCE_VIOLATED,
