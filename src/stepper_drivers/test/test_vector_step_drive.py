@@ -816,7 +816,9 @@ def test_a_position_held_back_by_the_inhibit_time_carries_the_time_it_was_true(t
     time, so a poll reads a position up to that old. read_state gives the frame's reception as
     `measured_at_s` (the bus owner's state time; the trajectory feedback compares the plan at
     that time): at a steady jog the position then matches the simulator's true position at
-    `measured_at_s`, where against the poll's own time it lags by up to a whole inhibit time."""
+    `measured_at_s`, where against the poll's own time it lags by up to a whole inhibit time
+    (more when the simulator or the receive thread is late, which measured_at_s also covers).
+    Standing, the position is current: None."""
     inhibit_s, v = 0.05, 6400.0                          # a long inhibit: the lag is plain
     bench = Bench(tmp_path, tpdo_inhibit_ms=inhibit_s * 1000.0)
     try:
@@ -831,7 +833,7 @@ def test_a_position_held_back_by_the_inhibit_time_carries_the_time_it_was_true(t
             true_now = bench.sim.true_position_steps('axis1')
             if s.measured_at_s is None:                  # a frame came during the read
                 continue
-            assert now - inhibit_s <= s.measured_at_s <= now
+            assert s.measured_at_s <= now
             at_measured.append(abs(s.position_steps - (true_now - v * (now - s.measured_at_s))))
             at_poll.append(true_now - s.position_steps)
             time.sleep(inhibit_s / 3.7)                  # samples spread over the frame period
@@ -841,5 +843,7 @@ def test_a_position_held_back_by_the_inhibit_time_carries_the_time_it_was_true(t
         at_poll.sort()
         assert at_measured[len(at_measured) // 2] <= v * 0.006, at_measured
         assert at_poll[len(at_poll) // 2] >= v * inhibit_s / 4, at_poll   # what it corrects
+        complete(d.set_velocity(0.0, MOTION))
+        assert settle(d).measured_at_s is None
     finally:
         bench.close()

@@ -578,19 +578,17 @@ class VectorStepDrive(Drive):
             homed=bool(rstsflg & vm.RSTSFLG_HOMED), homing=homing, fault=fault,
             fault_code=code, fault_text=text, alarms=tuple(extra),
             mode=mode_text, status_word=sw, position_steps=position, velocity_steps_s=velocity_hz,
-            measured_at_s=self._position_measured_at_s(position))
+            measured_at_s=self._position_measured_at_s(position, moving))
 
-    def _position_measured_at_s(self, position: int) -> float | None:
+    def _position_measured_at_s(self, position: int, moving: bool) -> float | None:
         """When the cached position was true. A moving axis' position TxPDO goes out at most
-        once per inhibit time (tpdo_inhibit_ms), so a poll may read a value up to that old: its
-        time is the frame's reception. A frame older than the inhibit time leaves no change held
-        back ([0x1800+(No.PDO-1):03] "Inibisce la trasmissione dei PDO per il tempo impostato": a
-        change is sent once the inhibit time ends): the value is current, None (the poll's
-        time). A frame that came between the caller's read of `position` and this is not it:
-        None."""
+        once per inhibit time (tpdo_inhibit_ms, [0x1800+(No.PDO-1):03] "Inibisce la trasmissione
+        dei PDO per il tempo impostato"), and later still when the bus or this process is slow:
+        while the axis moves, its time is the last frame's reception, however long ago. A
+        standing axis sends a change at once: its position is current, None (the poll's time).
+        A frame that came between the caller's read of `position` and this is not it: None."""
         rx = self._position_rx
-        if rx is None or rx[1] != position or time.monotonic() - rx[0] >= \
-                self.inhibit_100us * 1e-4:
+        if not moving or rx is None or rx[1] != position:
             return None
         return rx[0]
 
