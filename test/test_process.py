@@ -81,13 +81,14 @@ def test_an_exception_in_a_callback_ends_the_node_after_the_drives_stopped():
     p = start('callback')
     context = rclpy.Context()
     rclpy.init(context=context)
+    node = rclpy.create_node('process_test_client', context=context)
     try:
-        node = rclpy.create_node('process_test_client', context=context)
         pub = node.create_publisher(Float64, 'process_test_boom', 10)
         wait_for(lambda: pub.get_subscription_count() > 0, 10.0, 'the node subscribed')
         pub.publish(Float64(data=1.0))
         code, out = finish(p)
     finally:
+        node.destroy_node()          # now, not whenever the garbage collector gets to it
         rclpy.shutdown(context=context)
     assert code == 1 and 'drives stopped' in out and 'a bug in a callback' in out, out
     assert out.index('drives stopped') < out.index('Traceback'), out
