@@ -524,17 +524,16 @@ def bench_latency(v: Vendor, ros: RosClient, log_dir: pathlib.Path, n: int,
         dump.append(f'{t_pub:.6f} {hit.t - t_pub:.6f} '
                     f'{"-" if first is None else f"{first.t - t_pub:.6f}"}\n')
     (log_dir / f'{v.key}_commands.txt').write_text(''.join(dump))
-    link_first, link_target = [], []
+    link_first = []          # Vector Step: its first frame is its target frame
     if link is not None:
         with link.cv:
             (log_dir / f'{v.key}_link.txt').write_text(''.join(
                 f'{r.t:.6f} {r.fc:03X} {r.data.hex()}\n' for r in link.reqs))
-    for t_pub, hit, _ in pubs if link is not None else ():
-        frame = link.wait(t_pub, v.is_target, 0.0) if hit is not None else None
-        if frame is not None and frame.t <= hit.t:
-            link_target.append(frame.t - t_pub)
-            first = next((r for r in link.between(t_pub, frame.t) if v.is_first(r)), frame)
-            link_first.append(first.t - t_pub)
+        for t_pub, hit, _ in pubs:
+            frame = link.wait(t_pub, v.is_target, 0.0) if hit is not None else None
+            if frame is not None and frame.t <= hit.t:
+                first = next((r for r in link.between(t_pub, frame.t) if v.is_first(r)), frame)
+                link_first.append(first.t - t_pub)
     floor = [floor_t[i] - t for i, t in floor_pub.items() if i in floor_t]
     txn = transaction_times(v, wire, [(t, f) for t, _, f in pubs])
     res = {'vendor': v.key, 'commands': n, 'missed': missed, 'rate_hz': rate_hz,
@@ -542,8 +541,7 @@ def bench_latency(v: Vendor, ros: RosClient, log_dir: pathlib.Path, n: int,
            'duration_s': duration, 'load': load, 'cores': os.cpu_count(),
            'drives': len(node_cfg['drives']),
            'floor': floor, 'target': target_lat, 'first': first_lat, 'preamble': preamble,
-           'txn': txn, 'floor_missed': n - len(floor), 'link_first': link_first,
-           'link_target': link_target}
+           'txn': txn, 'floor_missed': n - len(floor), 'link_first': link_first}
     report_latency(v, res)
     return res
 

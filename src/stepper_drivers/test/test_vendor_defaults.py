@@ -14,9 +14,7 @@ from stepper_drivers.vendors import rd4, vector_step, xmind_k, xplus_mt
 
 
 def spec(vendor, name, scope='drive'):
-    return next(p.default for p in vendor.PARAMS if p.name == name and p.scope == scope) \
-        if hasattr(vendor, 'PARAMS') else \
-        next(p.default for p in vendor.VENDOR.params if p.name == name and p.scope == scope)
+    return next(p.default for p in vendor.VENDOR.params if p.name == name and p.scope == scope)
 
 
 def test_vector_step_bus_and_drive_from_partial_params_get_the_documented_watchdogs():

@@ -143,10 +143,10 @@ def _check_drive(name: str, params: Mapping[str, Any], master_heartbeat_ms: int,
                          f'time (at most {0xFFFF // MASTER_HEARTBEAT_PERIODS} ms)')
 
 
-def _node_id_errors(params: Mapping[str, Any]) -> list[str]:
+def _node_id_errors(params: Mapping[str, Any], bus: Mapping[str, Any]) -> list[str]:
     """Two drives with one node-ID, or a drive on the node's own heartbeat node-ID: the rules
-    CanBus.claim applies when the drives are made (same messages)."""
-    bus = VENDOR.with_defaults(param_rules.bus_params(params))
+    CanBus.claim applies when the drives are made (same messages). `bus`: the bus parameters
+    with their defaults."""
     taken: dict[int, str] = {}
     if int(bus['can.master_heartbeat_ms']):
         taken[int(bus['can.master_node_id'])] = MASTER
@@ -169,7 +169,7 @@ def validate(params: Mapping[str, Any]) -> list[str]:
     and for every run-time change: node-IDs, and per drive bit rate, homing method, heartbeat,
     SYNC watchdog and the node's own heartbeat."""
     bus = VENDOR.with_defaults(param_rules.bus_params(params))
-    return _node_id_errors(params) + param_rules.check_each(
+    return _node_id_errors(params, bus) + param_rules.check_each(
         params, None, lambda name, view: _check_drive(
             name, view, int(bus['can.master_heartbeat_ms']), float(bus['can.sync_period_s'])))
 
