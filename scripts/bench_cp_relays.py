@@ -62,10 +62,12 @@ def out(line: str) -> None:
 
 
 # ---------------------------------------------------------------------- TCP relays (node link)
-def relay_tcp(upstream_port: int, on_requests: Callable[[float, int, bytes], bytes]) -> None:
+def relay_tcp(upstream_port: int, on_requests: Callable[[float, int, bytes], bytes],
+              time_replies: bool = True) -> None:
     """A TCP relay 127.0.0.1:<port> -> upstream: the node's bytes are forwarded first, then
     `on_requests(t, conn, buffer)` prints what they complete and returns the rest; `A` lines
-    time the bytes going back to the node."""
+    time the bytes going back to the node (time_replies; not for CAN, where nothing reads them
+    and the broker's frames to the node would make hundreds of lines a second)."""
     conns = [0]
 
     async def client(reader, writer):
@@ -86,7 +88,8 @@ def relay_tcp(upstream_port: int, on_requests: Callable[[float, int, bytes], byt
         async def replies():
             while data := await up_r.read(4096):
                 writer.write(data)
-                out(f'A {time.monotonic():.6f} {conn}')
+                if time_replies:
+                    out(f'A {time.monotonic():.6f} {conn}')
             writer.close()
         await asyncio.gather(requests(), replies(), return_exceptions=True)
 
@@ -410,7 +413,7 @@ def main(argv: list[str]) -> int:
     if kind == 'tcp':
         relay_tcp(int(args[0]), modbus_requests)
     elif kind == 'canlink':
-        relay_tcp(int(args[0]), socketcand_sends)
+        relay_tcp(int(args[0]), socketcand_sends, time_replies=False)
     elif kind == 'pty':
         run_pty(args[0], args[1], int(args[2]))
     elif kind == 'can':

@@ -49,6 +49,7 @@ class DriveBench:
     connect_timeout_s = 30.0                  # process starts take seconds on a busy machine
     wait_connected = True                     # the constructor returns once all are connected
     node_executable = ''                      # '' = <vendor>_node (the lifecycle one: ...)
+    node_env: dict[str, str] = {}             # the node process's further environment
 
     def __init__(self, procs, ros, node_args=()):
         from diagnostic_msgs.msg import DiagnosticArray
@@ -63,7 +64,8 @@ class DriveBench:
             executable('stepper_drivers', self.node_executable or f'{self.vendor}_node'),
             '--ros-args',
             '--params-file', str(CONFIG / f'{self.vendor}.yaml'), *self.link_args(),
-            '-p', 'reconnect_period_s:=0.2', *self.node_extra_args, *node_args])
+            '-p', 'reconnect_period_s:=0.2', *self.node_extra_args, *node_args],
+            env=self.node_env)
         ros.subscribe(JointState, '/joint_states', keep=True)
         ros.subscribe(DiagnosticArray, '/diagnostics')
         for d in self.drives:

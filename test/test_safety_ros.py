@@ -7,12 +7,15 @@ modules) and judges by the simulator's true position, not by what the node repor
 - velocity commands from several publishers, each ending with 0.0, leave the drive stopped
   (the watchdog is set far out, so it cannot be what stops it);
 - a stop of one drive is answered while another drive of the bus runs a long operation;
-- the node SIGKILLed mid-run: drives with a drive-side watchdog stop by themselves.
+- the node SIGKILLed mid-run: drives with a drive-side watchdog stop by themselves;
+- a bus owner that fails (a bug, injected by test/fault_site) stops its drives and ends the node.
 """
 
 from __future__ import annotations
 
 import math
+import os
+import pathlib
 import signal
 import threading
 import time
@@ -41,14 +44,18 @@ TRANSACTION_S = {'xplus_mt': 0.01, 'rd4': 0.05, 'xmind_k': 0.06, 'vector_step': 
 SIM_TICK_S = {'xplus_mt': 0.02, 'rd4': 0.01, 'xmind_k': 0.05, 'vector_step': 0.02}
 
 
-def make_bench(vendor, procs, ros, tmp_path, node_args=()):
+def make_bench(vendor, procs, ros, tmp_path, node_args=(), node_env=None):
     if vendor == 'vector_step':
+        assert node_env is None, 'the Vector Step rig starts its node by itself'
         rig = test_vector_step_ros.Rig(tmp_path, node_args=node_args)
         procs.append(_Closer(rig))
         return rig
     module = {'xplus_mt': test_xplus_mt_ros, 'rd4': test_rd4_ros,
               'xmind_k': test_xmind_k_ros}[vendor]
-    return module.Bench(procs, ros, tmp_path, node_args=node_args)
+    bench = module.Bench
+    if node_env:
+        bench = type(bench.__name__, (bench,), {'node_env': node_env})
+    return bench(procs, ros, tmp_path, node_args=node_args)
 
 
 class _Closer:
@@ -154,3 +161,31 @@ def test_node_killed_mid_run_the_drive_stops_itself(vendor, procs, ros, tmp_path
                + RUN_RAD_S[vendor] / STOP_DECEL_RAD_S2[vendor] + Track.SAMPLE_S + MIDDLEWARE_S)
     still_at = track.wait_still(0.3, bound_s + 3.0, f'{vendor} axis1 stopped by itself')
     assert still_at - t_kill <= bound_s, (still_at - t_kill, bound_s)
+
+
+FAULT_SITE = pathlib.Path(__file__).resolve().parent / 'fault_site'
+
+
+# X-MIND K has no drive-side watchdog: only the node can have stopped it; the X-PLUS MT's 1097
+# (1 s) would come far later than the bound.
+@pytest.mark.parametrize('vendor', ['xmind_k', 'xplus_mt'])
+def test_a_bus_owner_that_fails_stops_its_drives_and_ends_the_node(vendor, procs, ros, tmp_path):
+    trigger = tmp_path / 'owner_fault'
+    bench = make_bench(vendor, procs, ros, tmp_path, node_env={
+        'PYTHONPATH': os.pathsep.join([str(FAULT_SITE), os.environ.get('PYTHONPATH', '')]),
+        'STEPPER_TEST_OWNER_FAULT': str(trigger)})
+    assert bench.set_params(('command_timeout_s', 60.0))[0].successful   # not the watchdog
+    track, _ = _run(bench, vendor)
+    t_fault = time.monotonic()
+    trigger.touch()
+    # the owner meets the fault at its next wake-up (within a poll period), stops the drive
+    # (one transaction), and the simulator ramps it down
+    bound_s = watchdog_bound_s(0.0, RATE_HZ[vendor], RUN_RAD_S[vendor], DECEL_RAD_S2[vendor],
+                               TRANSACTION_S[vendor]) + SIM_TICK_S[vendor]
+    assert bound_s < DRIVE_WATCHDOG_S.get(vendor, math.inf)
+    still_at = track.wait_still(0.3, bound_s + 3.0, f'{vendor} axis1 stopped by the node')
+    assert still_at - t_fault <= bound_s, (still_at - t_fault, bound_s)
+    assert bench.node.proc.wait(timeout=10) == 1, bench.node.output()[-3000:]
+    out = bench.node.output()
+    assert 'bus owner failed' in out and 'injected owner fault' in out, out[-3000:]
+    assert f'{vendor}_node: ended: ' in out, out[-3000:]

@@ -435,6 +435,29 @@ def test_shutdown_stops_every_drive_then_disables_those_named(bus):
         result(sup.submit('axis1', COMMAND, d['axis1'].fault_reset, 'late'))
 
 
+def test_a_command_that_comes_while_the_shutdown_runs_never_reaches_the_wire(bus):
+    """A service or topic callback may still run while the drives are stopped at shutdown
+    (the executor spins until the end): its job is refused, not sent after the stop."""
+    sup, line, d = bus()
+    d['axis2'].velocity = 3.0
+    t0 = time.monotonic()
+    ender = threading.Thread(target=sup.shutdown, args=(1.0,), kwargs={'disable': ['axis2']})
+    ender.start()
+    wait_for(lambda: _stop_time(line, 'axis1', t0), 2.0, 'the shutdown stop of axis1')
+    late = [sup.submit('axis1', STREAM, lambda: d['axis1'].set_velocity(7.0, None), 'v7',
+                       topic='velocity'),
+            sup.submit('axis2', COMMAND, d['axis2'].enable, 'enable', motion=False),
+            sup.submit('axis2', URGENT, d['axis2'].stop, 'stop')]
+    ender.join(3.0)
+    assert not ender.is_alive()
+    for fut in late:
+        with pytest.raises(Cancelled, match='shutting down'):
+            result(fut)
+    sent = [c[1:3] for c in line.calls() if c[0] >= t0]
+    assert ('axis1', 'set_velocity') not in sent and ('axis2', 'enable step') not in sent, sent
+    assert sent[-1] == ('axis2', 'disable') and d['axis1'].velocity == 0.0, sent
+
+
 def test_a_confirmation_does_not_disarm_a_velocity_accepted_after_it(bus):
     """position p queued, then velocity v accepted (armed) and queued behind it: p confirmed
     must not disarm the watchdog that v, running next, needs."""
