@@ -141,6 +141,34 @@ def test_commands_refused_nan_out_of_limits_and_not_enabled(bench):
     assert abs(bench.true_steps('axis1')) < 1
 
 
+def test_a_stream_of_refused_commands_is_logged_once_and_counted_each_time(bench):
+    """A controller streaming set points to a drive that is not enabled: each value is another
+    command, but one reason. Logged at its first refusal, again only after a command was taken
+    (a warning per message flooded the log and /rosout and cut the command thread's rate to a
+    third)."""
+    def logged():
+        return bench.node.output().count('axis1: command refused: ')
+    n = 200
+    before = bench.status('axis1').commands_refused
+    logged_before = logged()
+    for i in range(n):
+        bench.command('axis1', 'position_command', 0.5 + 0.001 * i)
+    st = bench.status('axis1', lambda m: m.commands_refused >= before + n,
+                      what=f'{n} refusals counted')
+    assert st.last_refusal.startswith(f'position_command {0.5 + 0.001 * (n - 1)}: ') \
+        and 'not enabled' in st.last_refusal, st.last_refusal
+    assert logged() == logged_before + 1, bench.node.output()[-3000:]
+    bench.enable('axis1')
+    bench.command('axis1', 'position_command', 0.5)
+    bench.status('axis1', lambda m: not m.moving and abs(m.position - 0.5) < 1e-3,
+                 what='the command after enable taken')
+    bench.enable('axis1', False)
+    bench.command('axis1', 'position_command', 0.6)
+    bench.status('axis1', lambda m: m.commands_refused >= before + n + 1)
+    wait_for(lambda: logged() == logged_before + 2, 5.0, 'the refusal after a taken command '
+             'logged again')
+
+
 def test_save_params_is_verified_by_the_stored_copy(bench):
     import json
     # 1093 Brake Delay Lock is storable (App.1 '**'); change it, save, read the simulated EEPROM
