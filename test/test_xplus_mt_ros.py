@@ -169,6 +169,27 @@ def test_a_stream_of_refused_commands_is_logged_once_and_counted_each_time(bench
              'logged again')
 
 
+def test_a_stream_of_set_points_the_drive_cannot_take_is_logged_once(bench):
+    """max_position opened far beyond the drive: set points the node passes but the X-PLUS MT
+    cannot hold (its Target Position is 32 bits) fail, each as a job, for one reason: one error
+    in the log for the run, the latest in /diagnostics, nothing written."""
+    def logged():
+        return bench.node.output().count('axis1: position_command ')
+    (r,) = bench.set_params(('drives.axis1.max_position', 1e9))
+    assert r.successful, r.reason
+    bench.enable('axis1')
+    logged_before = logged()
+    n = 50
+    for i in range(n):
+        bench.command('axis1', 'position_command', 1e8 + i)
+    last = f'position_command {1e8 + n - 1}: '
+    bench.ros.wait_msg('/diagnostics', lambda a: any(
+        s.name.endswith(': axis1') and s.message.startswith(last) for s in a.status),
+        timeout_s=10.0, what='the last failure in /diagnostics')
+    assert logged() == logged_before + 1, bench.node.output()[-3000:]
+    assert abs(bench.true_steps('axis1')) < 1
+
+
 def test_save_params_is_verified_by_the_stored_copy(bench):
     import json
     # 1093 Brake Delay Lock is storable (App.1 '**'); change it, save, read the simulated EEPROM

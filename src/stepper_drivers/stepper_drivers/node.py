@@ -98,6 +98,7 @@ class DriveHandle:
         self.commands_refused = 0
         self.last_refusal = ''
         self.refusal_logged = ''           # the kind of refusal logged last (see refuse)
+        self.job_error_logged = ''         # the kind of failed command logged last (owner)
         self.status_key: tuple = ()        # what the last published status said (owner thread)
         self.status_due = 0.0              # time.monotonic() of the next status regardless
 
@@ -609,13 +610,24 @@ class DriveNode(Node):
         return h.conv.to_steps_int(position)
 
     def _job_failed(self, h: DriveHandle, what: str, fut: concurrent.futures.Future) -> None:
-        """Owner thread: a queued command failed; superseded and dropped ones are normal."""
-        exc = fut.exception() if not fut.cancelled() else None
-        if exc is not None and not isinstance(exc, (Superseded, Cancelled)):
-            msg = f'{what}: {exc}'
-            if msg != h.slot.last_error:
-                self.log.error(f'{h.name}: {msg}')
-            h.slot.last_error = msg
+        """Owner thread, when a queued command ended: a failure goes to the status and
+        /diagnostics each time, to the log at the first of a run of one kind (as `refuse`: a
+        stream of set points the drive cannot take is one error, not one per set point); one
+        the drive took ends the run. Superseded and dropped ones are normal."""
+        if fut.cancelled():
+            return
+        exc = fut.exception()
+        if exc is None:
+            h.job_error_logged = ''
+            return
+        if isinstance(exc, (Superseded, Cancelled)):
+            return
+        msg = f'{what}: {exc}'
+        kind = _NUMBER.sub('#', msg)
+        if kind != h.job_error_logged:
+            self.log.error(f'{h.name}: {msg}')
+            h.job_error_logged = kind
+        h.slot.last_error = msg
 
     def command_position(self, h: DriveHandle, position: float) -> None:
         what = 'position_command'
