@@ -7,6 +7,7 @@ transaction, one true-position sample and the middleware hops of the measurement
 """
 
 import math
+import signal
 import threading
 import time
 
@@ -126,6 +127,25 @@ def test_xplus_follow_action_gives_feedback_and_reaches_the_goal(xplus):
     for k in range(2):
         assert mid.error.positions[k] == pytest.approx(
             mid.desired.positions[k] - mid.actual.positions[k], abs=1e-9)
+
+
+def test_xplus_a_goal_running_when_the_node_is_stopped_gets_its_result(xplus):
+    """SIGTERM during a trajectory: the goal is aborted with the reason, the client's result
+    request is answered before the node ends (exit code 0), and the axes stopped."""
+    for d in xplus.drives:
+        xplus.enable(d)
+    g = Goal(xplus, FollowJointTrajectory.Goal(trajectory=trajectory(
+        ['xplus_joint1', 'xplus_joint2'], [(3.0, [20.0, -20.0])])))
+    got = threading.Event()
+    fut = xplus.ros.in_spin(g.handle.get_result_async)
+    fut.add_done_callback(lambda _f: got.set())
+    xplus.status('axis1', lambda m: m.moving, what='following')
+    assert xplus.node.stop(signal.SIGTERM) == 0
+    assert got.wait(2.0), 'no result before the node ended'
+    from action_msgs.msg import GoalStatus
+    assert fut.result().status == GoalStatus.STATUS_ABORTED, fut.result()
+    assert fut.result().result.error_string == 'the node is shutting down', fut.result()
+    xplus.ros.in_spin(g.client.destroy)
 
 
 def test_xplus_impossible_segment_is_refused_before_anything_moves(xplus):

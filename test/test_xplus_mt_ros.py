@@ -7,6 +7,7 @@ true position topic and fault-injection service play the part of the real world.
 import math
 import os
 import pathlib
+import signal
 import time
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
@@ -188,6 +189,25 @@ def test_a_stream_of_set_points_the_drive_cannot_take_is_logged_once(bench):
         timeout_s=10.0, what='the last failure in /diagnostics')
     assert logged() == logged_before + 1, bench.node.output()[-3000:]
     assert abs(bench.true_steps('axis1')) < 1
+
+
+def test_a_service_waiting_when_the_node_is_stopped_gets_its_answer(bench):
+    """`home` waits for the homing to end; SIGTERM meanwhile: the caller (ros2 service call,
+    say) gets a refusal naming the shutdown, not silence for ever, and the node ends with 0."""
+    import threading
+    from std_srvs.srv import Trigger
+    bench.enable('axis1')
+    client = bench.ros.node.create_client(Trigger, f'{bench.node_ns}/axis1/home')
+    assert client.wait_for_service(timeout_sec=10)
+    answered = threading.Event()
+    fut = client.call_async(Trigger.Request())
+    fut.add_done_callback(lambda _f: answered.set())
+    bench.status('axis1', lambda m: m.moving, what='homing under way')
+    assert not answered.is_set()
+    assert bench.node.stop(signal.SIGTERM) == 0
+    assert answered.wait(2.0), 'home did not answer before the node ended'
+    r = fut.result()
+    assert not r.success and r.message == 'axis1: the node is shutting down', r.message
 
 
 def test_save_params_is_verified_by_the_stored_copy(bench):

@@ -25,6 +25,7 @@ node_trajectory.TrajectoryInterface; the status/diagnostics publishing (~130 lin
 from __future__ import annotations
 
 import concurrent.futures
+import contextlib
 import math
 import re
 import threading
@@ -168,6 +169,8 @@ class DriveNode(Node):
         self._diag_due = 0.0
         self._diag_kv: dict[str, dict[str, KeyValue]] = {}     # status name -> key -> KeyValue
         self._refusal_lock = threading.Lock()  # commands and services both count refusals
+        self._handlers = 0                     # service and action callbacks running (handling)
+        self._handlers_cv = threading.Condition()
         # The command subscriptions' own node: no global arguments (a launch file's
         # `__node:=` would give it this node's name), topics resolved by this node's rules.
         self.cmd_node = rclpy.create_node(
@@ -303,14 +306,17 @@ class DriveNode(Node):
                (WriteRegister, 'write_register', self.srv_write_register)]
         for srv_type, name, fn in srv:
             async def callback(req, resp, h=h, fn=fn):
-                return await fn(h, req, resp)
+                with self.handling():
+                    return await fn(h, req, resp)
             self.create_service(srv_type, ns + name, callback, callback_group=self.srv_group)
 
         async def move_to(goal, h=h):
-            return await self.act_move_to(h, goal)
+            with self.handling():
+                return await self.act_move_to(h, goal)
 
         async def homing(goal, h=h):
-            return await self.act_home(h, goal)
+            with self.handling():
+                return await self.act_home(h, goal)
         ActionServer(self, MoveTo, ns + 'move_to', execute_callback=move_to,
                      goal_callback=lambda _req: GoalResponse.ACCEPT,
                      cancel_callback=lambda _goal: CancelResponse.ACCEPT,
@@ -704,10 +710,15 @@ class DriveNode(Node):
         return fut.result()
 
     async def _next_poll(self, h: DriveHandle, timeout_s: float = 2.0) -> bool:
-        """Await the next snapshot of h (False: none within timeout_s, or the link is lost)."""
+        """Await the next snapshot of h (False: none within timeout_s, or the link is lost).
+        Raises Cancelled once the node shuts down: a service or action waiting for its drive
+        then answers, rather than loop on polls that will not come."""
         fut: concurrent.futures.Future = concurrent.futures.Future()
         h.sup.wait_poll(h.name, timeout_s, fut.set_result)
-        return await self._await(fut)
+        fresh = await self._await(fut)
+        if not fresh and h.sup.stopping:
+            raise Cancelled('the node is shutting down')
+        return fresh
 
     async def _run_job(self, h: DriveHandle, kind: str, fn: Callable, label: str,
                        **kw) -> Any:
@@ -925,8 +936,33 @@ class DriveNode(Node):
             self.log.info(f'parameter {p.name} := {p.value}')
 
     # ------------------------------------------------------------------------------- shutdown
+    @contextlib.contextmanager
+    def handling(self):
+        """Around a service or action callback (executor thread): counted, so that the
+        shutdown lets it answer before the executor ends (`wait_handlers`)."""
+        with self._handlers_cv:
+            self._handlers += 1
+        try:
+            yield
+        finally:
+            with self._handlers_cv:
+                self._handlers -= 1
+                self._handlers_cv.notify_all()
+
+    def wait_handlers(self, timeout_s: float) -> bool:
+        """After shutdown_drives (the process's main thread): wait until every service and
+        action callback has its answer, which the drives' shutdown gave them (the node is
+        shutting down); False if some did not within timeout_s. Without this, a client such as
+        `ros2 service call .../home` waited for ever on a node that had ended."""
+        with self._handlers_cv:
+            return self._handlers_cv.wait_for(lambda: self._handlers == 0, timeout_s)
+
     def shutdown_drives(self) -> None:
         """Stop motion, disable where disable_on_shutdown, close the links. No ROS needed."""
+        trajectories = getattr(self, 'trajectories', None)     # (built with the interfaces)
+        if trajectories is not None:     # a goal that awaits its run ends with it
+            trajectories.follower.stop('the node is shutting down')
+
         def run(sup: BusSupervisor) -> None:
             disable = [n for n in sup.slots if self.handles[n].param('disable_on_shutdown')]
             sup.shutdown(SHUTDOWN_STOP_TIMEOUT_S, disable)

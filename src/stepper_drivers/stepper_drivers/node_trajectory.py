@@ -35,8 +35,12 @@ class TrajectoryInterface:
         from .node import COMMAND_QOS      # (node.py imports this module)
         node.create_subscription(JointTrajectory, '~/joint_trajectory', self.on_trajectory,
                                  COMMAND_QOS, callback_group=node.cmd_group)
+
+        async def execute(goal_handle):
+            with node.handling():                # answered before the node ends
+                return await self.execute(goal_handle)
         ActionServer(node, FollowJointTrajectory, '~/follow_joint_trajectory',
-                     execute_callback=self.execute,
+                     execute_callback=execute,
                      goal_callback=lambda _req: GoalResponse.ACCEPT,
                      cancel_callback=lambda _goal: CancelResponse.ACCEPT,
                      callback_group=node.srv_group)

@@ -29,6 +29,9 @@ SHUTDOWN_SIGNALS = frozenset({signal.SIGINT, signal.SIGTERM})
 GIL_SWITCH_INTERVAL_S = 0.0005
 # How long the executor thread may take to end once shut down [s].
 EXECUTOR_JOIN_S = 2.0
+# How long the service and action callbacks still running may take to answer at shutdown [s]
+# (they have their answer once the drives are stopped: the executor only has to send it).
+HANDLERS_JOIN_S = 2.0
 
 
 def block_shutdown_signals() -> None:
@@ -86,6 +89,12 @@ def spin_node(node) -> int:
     finally:
         node.stop_command_executor()        # no new command while the drives stop
         node.shutdown_drives()
+        # services and actions still waiting get their answer (the node is shutting down)
+        # while the executor still spins
+        wait_handlers = getattr(node, 'wait_handlers', None)
+        if wait_handlers is not None and not wait_handlers(HANDLERS_JOIN_S):
+            print(f'{node.get_name()}: a service or action did not answer within '
+                  f'{HANDLERS_JOIN_S:g} s of the shutdown', file=sys.stderr, flush=True)
         executor.shutdown(timeout_sec=1.0)
         spinner.join(EXECUTOR_JOIN_S)
         node.destroy_node()

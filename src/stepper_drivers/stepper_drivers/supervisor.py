@@ -239,16 +239,31 @@ class BusSupervisor:
 
     def wait_poll(self, drive: str, timeout_s: float, callback: Callable[[bool], None]) -> None:
         """Call callback(True) from the owner thread after the next poll of `drive`, or
-        callback(False) once timeout_s passed or the drive is lost."""
+        callback(False) once timeout_s passed or the drive is lost; at once with False (in
+        this thread) once the bus shuts down: no poll will come."""
         with self._cv:
-            self.slots[drive].poll_waiters.append((self.clock() + timeout_s, callback))
-            self._cv.notify()
+            if not self._stopping:
+                self.slots[drive].poll_waiters.append((self.clock() + timeout_s, callback))
+                self._cv.notify()
+                return
+        callback(False)
 
     def after(self, delay_s: float, callback: Callable[[], None]) -> None:
-        """Call callback() from the owner thread once delay_s has passed."""
+        """Call callback() from the owner thread once delay_s has passed; at once (in this
+        thread) once the bus shuts down, as the owner then calls every timer still waiting:
+        what awaits one (a service, an action) ends rather than wait for ever."""
         with self._cv:
-            self._timers.append((self.clock() + delay_s, callback))
-            self._cv.notify()
+            if not self._stopping:
+                self._timers.append((self.clock() + delay_s, callback))
+                self._cv.notify()
+                return
+        callback()
+
+    @property
+    def stopping(self) -> bool:
+        """shutdown() was called (or the owner failed): no job, poll or timer is taken any
+        more."""
+        return self._stopping
 
     def shutdown(self, standstill_timeout_s: float, disable: Iterable[str] = (),
                  join_timeout_s: float = 30.0) -> None:
@@ -738,6 +753,10 @@ class BusSupervisor:
                 self._cut_short(s, 'the node is shutting down')
             s.poll_steps = None
             self._resolve_waiters(s, False)
+        with self._cv:      # after the jobs: a job's time-out timer then finds it ended
+            timers, self._timers = self._timers, []
+        for _, callback in timers:
+            callback()
         for s in live:                 # every drive decelerates at once ...
             self._shutdown_step(s, 'stop', s.drive.stop)
         deadline = self.clock() + standstill_timeout_s

@@ -458,6 +458,18 @@ def test_a_command_that_comes_while_the_shutdown_runs_never_reaches_the_wire(bus
     assert sent[-1] == ('axis2', 'disable') and d['axis1'].velocity == 0.0, sent
 
 
+def test_what_waits_for_a_poll_or_a_timer_is_answered_at_shutdown(bus):
+    """A service awaiting a poll or a timer must not wait for ever once the owner is gone."""
+    sup, line, d = bus()
+    calls = []
+    sup.after(60.0, lambda: calls.append('timer set before'))
+    sup.shutdown(0.5)
+    assert calls == ['timer set before'] and sup.stopping
+    sup.wait_poll('axis1', 60.0, lambda ok: calls.append(('poll', ok)))
+    sup.after(60.0, lambda: calls.append('timer set after'))
+    assert calls[1:] == [('poll', False), 'timer set after']
+
+
 def test_a_confirmation_does_not_disarm_a_velocity_accepted_after_it(bus):
     """position p queued, then velocity v accepted (armed) and queued behind it: p confirmed
     must not disarm the watchdog that v, running next, needs."""
