@@ -210,6 +210,29 @@ def test_a_service_waiting_when_the_node_is_stopped_gets_its_answer(bench):
     assert not r.success and r.message == 'axis1: the node is shutting down', r.message
 
 
+def test_a_stop_during_homing_ends_the_home_call_at_once(bench):
+    """`home` waits for the homing to end; a stop halts it: the call ends at the next polls
+    with the reason, not homing.timeout_s (20 s in config/xplus_mt.yaml) later as a time-out."""
+    import threading
+    from std_srvs.srv import Trigger
+    bench.enable('axis1')
+    client = bench.ros.node.create_client(Trigger, f'{bench.node_ns}/axis1/home')
+    assert client.wait_for_service(timeout_sec=10)
+    answered = threading.Event()
+    fut = client.call_async(Trigger.Request())
+    fut.add_done_callback(lambda _f: answered.set())
+    bench.status('axis1', lambda m: m.moving, what='homing under way')
+    r = bench.call('axis1', 'stop')
+    assert r.success, r.message
+    t_stop = time.monotonic()
+    # the halt's ramp, then two polls that agree (50 Hz), and the answer's way back
+    assert answered.wait(2.0), 'home still waiting 2 s after the stop'
+    r = fut.result()
+    assert not r.success and 'homing interrupted' in r.message, r.message
+    assert time.monotonic() - t_stop < 2.0
+    assert not bench.status('axis1', lambda m: not m.moving).homed
+
+
 def test_save_params_is_verified_by_the_stored_copy(bench):
     import json
     # 1093 Brake Delay Lock is storable (App.1 '**'); change it, save, read the simulated EEPROM

@@ -767,7 +767,8 @@ class DriveNode(Node):
                                    disarms=True)
         timeout_s = h.param('homing.timeout_s')
         deadline = self.get_clock().now().nanoseconds * 1e-9 + timeout_s
-        await self._next_poll(h)
+        fresh = await self._next_poll(h)
+        idle_polls = 0         # snapshots in a row that say no homing runs (after its start)
         while True:
             st = h.state.homing
             if st == HomingState.ATTAINED:
@@ -784,13 +785,22 @@ class DriveNode(Node):
             if cancelled():
                 await self._stop_quietly(h, 'homing cancelled')
                 raise DriveError('homing cancelled; drive stopped')
+            # The homing ended without a result: a stop (CiA 402 Halt: "interrupted"), a
+            # disable or another mode. Each vendor's start_homing returns once it runs, so
+            # IDLE now is no late start; SETTLED_POLLS fresh snapshots decide, as for move_to.
+            idle_polls = idle_polls + 1 if st == HomingState.IDLE and fresh else \
+                idle_polls if st == HomingState.IDLE else 0
+            if idle_polls >= SETTLED_POLLS:
+                raise DriveError(f'homing interrupted before it ended (state '
+                                 f'{h.state.state.value}, mode {h.state.mode}): a stop, a '
+                                 'disable or a mode change; not homed')
             if self.get_clock().now().nanoseconds * 1e-9 > deadline:
                 await self._stop_quietly(h, 'homing timeout')
                 raise DriveError(f'homing timed out after {timeout_s:g} s (homing.timeout_s); '
                                  'drive stopped')
             if feedback:
                 feedback()
-            await self._next_poll(h, 1.0)
+            fresh = await self._next_poll(h, 1.0)
 
     async def _stop_quietly(self, h: DriveHandle, why: str) -> None:
         try:
