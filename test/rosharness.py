@@ -108,6 +108,33 @@ class DriveBench:
             self.status(d, lambda m: m.moving, what=f'{d} running')
         assert self.node.stop(signal.SIGTERM) == 0
 
+    def home_under_way(self, drive='axis1'):
+        """Enable `drive`, call its `home` (it answers when the homing ends) and return once
+        the axis moves: (the call's future, an event set when it answered)."""
+        from std_srvs.srv import Trigger
+        self.enable(drive)
+        client = self.ros.node.create_client(Trigger, f'{self.node_ns}/{drive}/home')
+        assert client.wait_for_service(timeout_sec=10)
+        answered = threading.Event()
+        fut = client.call_async(Trigger.Request())
+        fut.add_done_callback(lambda _f: answered.set())
+        self.status(drive, lambda m: m.moving, what='homing under way')
+        assert not answered.is_set()
+        return fut, answered
+
+    def stop_during_homing(self, drive, bound_s):
+        """`home`, then `stop` while it runs: the call must end with 'homing interrupted'
+        within bound_s of the stop (not at homing.timeout_s)."""
+        fut, answered = self.home_under_way(drive)
+        r = self.call(drive, 'stop')
+        assert r.success, r.message
+        t_stop = time.monotonic()
+        assert answered.wait(bound_s + 2.0), 'home still waiting 2 s past the bound'
+        took = time.monotonic() - t_stop
+        r = fut.result()
+        assert not r.success and 'homing interrupted' in r.message, r.message
+        assert took <= bound_s, (took, bound_s)
+
     # ------------------------------------------------------------------------------ ROS
     def status(self, drive, cond=lambda m: True, timeout_s=10.0, what=''):
         """The first status of `drive` that meets cond; a timeout names the last one seen and

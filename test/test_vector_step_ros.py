@@ -14,8 +14,8 @@ import time
 import can
 from diagnostic_msgs.msg import DiagnosticStatus
 import pytest
-from rosharness import (DriveBench, Procs, RosClient, Track, bad_parameter_output, wait_for,
-                        watchdog_bound_s)
+from rosharness import (MIDDLEWARE_S, DriveBench, Procs, RosClient, Track, bad_parameter_output,
+                        wait_for, watchdog_bound_s)
 from std_srvs.srv import SetBool
 from stepper_sim.socketcand_broker import SocketcandBroker
 from stepper_drivers.params import BUS_PARAMS
@@ -180,6 +180,16 @@ def test_home_on_the_bls_switch_while_joint_states_keep_flowing(rig):
     assert len(rig.ros.history['/joint_states']) - n_before >= 0.5 * elapsed * 50
     rig.command('axis1', 'position_command', 0.0)           # away from the switch
     rig.status('axis1', lambda m: not m.moving and abs(m.position) < 1e-3, what='at 0')
+    rig.idle('axis1')
+
+
+def test_a_stop_during_homing_ends_the_home_call_at_once(rig):
+    """The Vector Step reports a halted homing as IDLE: the `home` call ends at the next polls
+    with the reason, not homing.timeout_s (20 s) later as a time-out."""
+    # the halt's ramp (homing.speed_search 12 rad/s at homing.acceleration 200 rad/s^2), the
+    # statusword's TxPDO (inhibit 10 ms), the simulator's tick, three polls at 50 Hz, the
+    # answer's way back
+    rig.stop_during_homing('axis1', 12.0 / 200.0 + 0.01 + 0.02 + 3 / 50.0 + MIDDLEWARE_S)
     rig.idle('axis1')
 
 

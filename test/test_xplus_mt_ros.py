@@ -191,26 +191,10 @@ def test_a_stream_of_set_points_the_drive_cannot_take_is_logged_once(bench):
     assert abs(bench.true_steps('axis1')) < 1
 
 
-def _home_under_way(bench):
-    """Call axis1's `home` (it answers when the homing ends) and return once the axis moves:
-    (the call's future, an event set when it answered)."""
-    import threading
-    from std_srvs.srv import Trigger
-    bench.enable('axis1')
-    client = bench.ros.node.create_client(Trigger, f'{bench.node_ns}/axis1/home')
-    assert client.wait_for_service(timeout_sec=10)
-    answered = threading.Event()
-    fut = client.call_async(Trigger.Request())
-    fut.add_done_callback(lambda _f: answered.set())
-    bench.status('axis1', lambda m: m.moving, what='homing under way')
-    assert not answered.is_set()
-    return fut, answered
-
-
 def test_a_service_waiting_when_the_node_is_stopped_gets_its_answer(bench):
     """SIGTERM while `home` waits: the caller (ros2 service call, say) gets a refusal naming
     the shutdown, not silence for ever, and the node ends with 0."""
-    fut, answered = _home_under_way(bench)
+    fut, answered = bench.home_under_way()
     assert bench.node.stop(signal.SIGTERM) == 0
     assert answered.wait(2.0), 'home did not answer before the node ended'
     r = fut.result()
@@ -220,19 +204,10 @@ def test_a_service_waiting_when_the_node_is_stopped_gets_its_answer(bench):
 def test_a_stop_during_homing_ends_the_home_call_at_once(bench):
     """A stop halts the homing: the `home` call ends at the next polls with the reason, not
     homing.timeout_s (20 s in config/xplus_mt.yaml) later as a time-out."""
-    fut, answered = _home_under_way(bench)
-    r = bench.call('axis1', 'stop')
-    assert r.success, r.message
-    t_stop = time.monotonic()
     # the halt's ramp (homing.speed_search 8 rad/s at homing.acceleration 200 rad/s^2), a
     # transaction, the simulator's tick, three polls at 50 Hz (two that agree, and the phase),
     # the answer's way back
-    bound_s = 8.0 / 200.0 + 0.01 + 0.02 + 3 / 50.0 + MIDDLEWARE_S
-    assert answered.wait(bound_s + 2.0), 'home still waiting 2 s past the bound'
-    took = time.monotonic() - t_stop
-    r = fut.result()
-    assert not r.success and 'homing interrupted' in r.message, r.message
-    assert took <= bound_s, (took, bound_s)
+    bench.stop_during_homing('axis1', 8.0 / 200.0 + 0.01 + 0.02 + 3 / 50.0 + MIDDLEWARE_S)
     assert not bench.status('axis1', lambda m: not m.moving).homed
 
 
