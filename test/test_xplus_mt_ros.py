@@ -388,6 +388,33 @@ def test_move_to_and_homing_actions_give_feedback_and_result(bench):
     home.destroy()
 
 
+def test_a_move_to_goal_running_when_the_node_is_stopped_gets_its_result(bench):
+    """SIGTERM during a move_to goal: the result (ABORTED, the reason) reaches the client
+    before the node ends with exit code 0."""
+    import threading
+
+    from action_msgs.msg import GoalStatus
+    from rclpy.action import ActionClient
+    from stepper_drivers_msgs.action import MoveTo
+    bench.enable('axis1')
+    client = ActionClient(bench.ros.node, MoveTo, NODE + '/axis1/move_to')
+    assert client.wait_for_server(timeout_sec=10)
+    sent = threading.Event()
+    goal_future = bench.ros.in_spin(client.send_goal_async, MoveTo.Goal(position=50.0))
+    goal_future.add_done_callback(lambda _f: sent.set())
+    assert sent.wait(10) and goal_future.result().accepted
+    result_future = bench.ros.in_spin(goal_future.result().get_result_async)
+    got = threading.Event()
+    result_future.add_done_callback(lambda _f: got.set())
+    bench.status('axis1', lambda m: m.moving, what='moving to 50 rad')   # 4 s at 12 rad/s
+    assert bench.node.stop(signal.SIGTERM) == 0
+    assert got.wait(2.0), 'no move_to result before the node ended'
+    assert result_future.result().status == GoalStatus.STATUS_ABORTED
+    result = result_future.result().result
+    assert not result.success and result.message == 'axis1: the node is shutting down', result
+    bench.ros.in_spin(client.destroy)
+
+
 def test_status_carries_address_and_diagnostics_identity(bench):
     st = bench.status('axis2')
     assert (st.vendor, st.address, st.joint_name) == ('X-PLUS MT', '2', 'xplus_joint2')
