@@ -788,8 +788,10 @@ class DriveNode(Node):
             # The homing ended without a result: a stop (CiA 402 Halt: "interrupted"), a
             # disable or another mode. Each vendor's start_homing returns once it runs, so
             # IDLE now is no late start; SETTLED_POLLS fresh snapshots decide, as for move_to.
-            idle_polls = idle_polls + 1 if st == HomingState.IDLE and fresh else \
-                idle_polls if st == HomingState.IDLE else 0
+            if st != HomingState.IDLE:
+                idle_polls = 0
+            elif fresh:
+                idle_polls += 1
             if idle_polls >= SETTLED_POLLS:
                 raise DriveError(f'homing interrupted before it ended (state '
                                  f'{h.state.state.value}, mode {h.state.mode}): a stop, a '

@@ -261,8 +261,8 @@ class BusSupervisor:
 
     @property
     def stopping(self) -> bool:
-        """shutdown() was called (or the owner failed): no job, poll or timer is taken any
-        more."""
+        """The drives' shutdown began (shutdown(), or the owner failed): no job, poll or timer
+        is taken any more."""
         return self._stopping
 
     def shutdown(self, standstill_timeout_s: float, disable: Iterable[str] = (),
