@@ -66,16 +66,16 @@ os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
 from bench_command_path import (bare_rate, load_params, machine, reserve_domain,  # noqa: E402
                                 running)
 from builtin_interfaces.msg import Duration, Time  # noqa: E402
+from control_msgs.action import FollowJointTrajectory  # noqa: E402
 from std_msgs.msg import Float64  # noqa: E402
 from std_srvs.srv import SetBool  # noqa: E402
 from stepper_drivers.cli.ros_client import RosClient  # noqa: E402
 # the one trapezoid formula of the node (follow.Run.desired_steps uses it); Run itself needs
 # the node's live axes
-from stepper_drivers.follow import _along  # noqa: E402
+from stepper_drivers.trajectory import along as _along  # noqa: E402
 from stepper_drivers.trajectory import JointLimits, TrajectoryError, build, plan  # noqa: E402
 from stepper_drivers.units import UnitConversion  # noqa: E402
 from stepper_drivers.vendors.xplus_mt import XplusMtDrive  # noqa: E402
-from stepper_drivers_msgs.action import FollowJointTrajectory  # noqa: E402
 from stepper_drivers_msgs.msg import DriveStatus  # noqa: E402
 from stepper_sim.harness import CONFIG, Proc, executable, free_port, wait_for  # noqa: E402
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint  # noqa: E402

@@ -3,6 +3,7 @@
 # libraries, and a colcon build. Idempotent: a run with nothing to do takes a few seconds.
 #
 #   scripts/bootstrap.sh            # prepare and build
+#   scripts/bootstrap.sh --control-msgs   # only the control_msgs step (environment prepared)
 #   source scripts/env.sh           # (what every other script does) environment of the built workspace
 #
 # Environment: STEPPER_FORCE_PIP_ROS=1 ignores /opt/ros/jazzy (used to test the pip path);
@@ -12,6 +13,11 @@ ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 cd "$ROOT"
 VENV="$ROOT/.venv"
 STAMP_DIR="$VENV/.stamps"
+# The minimal control_msgs (FollowJointTrajectory and its two tolerance messages) for an
+# environment without one (the pip wheels have none): sources, build directory, install prefix.
+CM_SRC="$ROOT/scripts/control_msgs_min"
+CM_BUILD="$ROOT/build/control_msgs_min"
+CM_PREFIX="$VENV/control_msgs"
 export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
 
 log() { printf '[bootstrap] %s\n' "$*" >&2; }
@@ -62,7 +68,8 @@ if [ -n "$SYSTEM_ROS" ]; then
 else
     want="pip-$(hash_of requirements/python.txt requirements/ros-pip.txt requirements/constraints.txt)"
 fi
-if [ "$(cat "$STAMP_DIR/env" 2>/dev/null)" != "$want" ]; then
+# (--control-msgs: the environment as it is)
+if [ "${1:-}" != --control-msgs ] && [ "$(cat "$STAMP_DIR/env" 2>/dev/null)" != "$want" ]; then
     if [ -n "$SYSTEM_ROS" ]; then
         log "using the system ROS in $SYSTEM_ROS"
         # shellcheck disable=SC1091
@@ -96,22 +103,103 @@ if [ "$(cat "$STAMP_DIR/env" 2>/dev/null)" != "$want" ]; then
     rm -f "$STAMP_DIR/build"
 fi
 
-# --- colcon build, skipped when no source changed since the last successful build.
+# --- the environment every build runs in
 # shellcheck source=env.sh
 set +u; STEPPER_NO_WORKSPACE=1 source "$ROOT/scripts/env.sh"; set -u
+cmake_args=()
+if [ -z "$SYSTEM_ROS" ]; then
+    export CMAKE_PREFIX_PATH="$VENV${CMAKE_PREFIX_PATH:+:$CMAKE_PREFIX_PATH}"
+    cmake_args+=("-DPython3_EXECUTABLE=$VENV/bin/python")
+fi
+# colcon writes its own interpreter into the executables' shebangs: run it with the venv's
+# python, so `ros2 run` finds pymodbus & co. even when colcon itself came from apt.
+colcon() {
+    "$VENV/bin/python" -c 'import sys; from colcon_core.command import main; sys.argv[0] = "colcon"
+sys.exit(main())' "$@"
+}
+
+# --- control_msgs: the released package when the environment imports one (apt's
+# ros-jazzy-control-msgs, rosdep key control_msgs), else the minimal one of
+# scripts/control_msgs_min, built into its own prefix $CM_PREFIX that env.sh sources. That
+# directory has a COLCON_IGNORE, so the workspace's colcon build never finds it; the bootstrap
+# builds a copy without the marker.
+
+# Where the prepared environment imports a control_msgs from, the minimal one left out; nothing
+# when there is none.
+control_msgs_elsewhere() {
+    "$VENV/bin/python" - "$CM_PREFIX" <<'EOF'
+import importlib.machinery, os, sys
+ours = os.path.realpath(sys.argv[1]) + os.sep
+path = [p for p in sys.path if not os.path.realpath(p or '.').startswith(ours)]
+spec = importlib.machinery.PathFinder.find_spec('control_msgs', path)
+if spec is not None and spec.origin:  # a package, not a stray namespace directory
+    print(spec.origin)
+EOF
+}
+
+prepare_control_msgs() {
+    local origin want
+    origin=$(control_msgs_elsewhere)
+    if [ -n "$origin" ]; then
+        # never shadow it: no minimal package on any path
+        if [ -e "$CM_PREFIX" ] || [ -e "$CM_BUILD" ] || [ -e "$STAMP_DIR/control_msgs" ]; then
+            log "control_msgs comes from $origin: removing the minimal one"
+            rm -rf "$CM_PREFIX" "$CM_BUILD" "$STAMP_DIR/control_msgs"
+        fi
+        return
+    fi
+    # rebuilt when its sources (names and contents) or the environment change
+    want="$(cat "$STAMP_DIR/env" 2>/dev/null)-$(cd "$CM_SRC" && find . -type f | LC_ALL=C sort \
+        | xargs sha256sum | sha256sum | cut -c1-16)"
+    if [ "$(cat "$STAMP_DIR/control_msgs" 2>/dev/null)" = "$want" ] \
+        && [ -f "$CM_PREFIX/local_setup.bash" ]; then
+        return
+    fi
+    log "no control_msgs in the environment: building the minimal one into $CM_PREFIX"
+    rm -rf "$CM_BUILD" "$CM_PREFIX" "$STAMP_DIR/control_msgs"
+    mkdir -p "$CM_BUILD/src/control_msgs"
+    # build/ has colcon's own marker only after the first workspace build
+    : > "$CM_BUILD/COLCON_IGNORE"
+    cp -r "$CM_SRC/package.xml" "$CM_SRC/CMakeLists.txt" "$CM_SRC/action" "$CM_SRC/msg" \
+        "$CM_BUILD/src/control_msgs/"
+    colcon build --base-paths "$CM_BUILD/src" --build-base "$CM_BUILD/build" \
+        --install-base "$CM_PREFIX" --merge-install \
+        --event-handlers console_direct- console_stderr+ \
+        --cmake-args -DBUILD_TESTING=OFF "${cmake_args[@]}" >&2
+    mkdir -p "$STAMP_DIR"
+    echo "$want" > "$STAMP_DIR/control_msgs"
+}
+
+prepare_control_msgs
+if [ "${1:-}" = --control-msgs ]; then
+    exit 0
+fi
+if [ -f "$CM_PREFIX/local_setup.bash" ] \
+    && [[ ":${AMENT_PREFIX_PATH:-}:" != *":$CM_PREFIX:"* ]]; then
+    # just built: the workspace builds on it as env.sh will run it
+    # shellcheck disable=SC1091
+    set +u; source "$CM_PREFIX/local_setup.bash"; set -u
+fi
+
+# --- colcon build, skipped when no source changed since the last successful build.
+# rosidl keeps the generated code of an interface file that is gone (make sees nothing out of
+# date) and fails on it: a changed list of interface files builds the interface package afresh.
+interfaces=$(cd src && find . -path '*_msgs/*' \
+    \( -name '*.msg' -o -name '*.srv' -o -name '*.action' \) | LC_ALL=C sort | sha256sum | cut -c1-16)
+if [ "$(cat "$STAMP_DIR/interfaces" 2>/dev/null)" != "$interfaces" ]; then
+    for pkg in src/*_msgs; do
+        rm -rf "build/${pkg#src/}" "install/${pkg#src/}"
+    done
+    rm -f "$STAMP_DIR/build"
+fi
 newest=$(find src config colcon.meta -newer "$STAMP_DIR/build" -not -path '*/__pycache__*' \
     -not -name '*.pyc' -print -quit 2>/dev/null || echo changed)
 if [ ! -f "$STAMP_DIR/build" ] || [ -n "$newest" ] || [ ! -f install/local_setup.bash ]; then
     log "colcon build"
     args=(--symlink-install --event-handlers console_direct- console_stderr+)
-    if [ -z "$SYSTEM_ROS" ]; then
-        export CMAKE_PREFIX_PATH="$VENV${CMAKE_PREFIX_PATH:+:$CMAKE_PREFIX_PATH}"
-        args+=(--cmake-args "-DPython3_EXECUTABLE=$VENV/bin/python")
-    fi
-    # colcon writes its own interpreter into the executables' shebangs: run it with the venv's
-    # python, so `ros2 run` finds pymodbus & co. even when colcon itself came from apt.
-    "$VENV/bin/python" -c 'import sys; from colcon_core.command import main; sys.argv[0] = "colcon"
-sys.exit(main())' build "${args[@]}" >&2
+    [ ${#cmake_args[@]} -eq 0 ] || args+=(--cmake-args "${cmake_args[@]}")
+    colcon build "${args[@]}" >&2
     touch "$STAMP_DIR/build"
+    echo "$interfaces" > "$STAMP_DIR/interfaces"
 fi
 log "ready"

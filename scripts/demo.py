@@ -316,8 +316,8 @@ class Demo:
     def run_trajectory(self, vendor: str, labels: list[str]) -> None:
         """One two-axis trajectory through the node's follow_joint_trajectory action."""
         from builtin_interfaces.msg import Duration
+        from control_msgs.action import FollowJointTrajectory
         from rclpy.action import ActionClient
-        from stepper_drivers_msgs.action import FollowJointTrajectory
         from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
         joints = [self.latest(label)[0].joint_name for label in labels]
         node = labels[0].split('/')[0]

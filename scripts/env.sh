@@ -13,6 +13,25 @@ if [ -d "$_stepper_root/.venv/bin" ]; then
     export VIRTUAL_ENV="$_stepper_root/.venv"
     export PATH="$_stepper_root/.venv/bin:$PATH"
 fi
+# The minimal control_msgs that scripts/bootstrap.sh builds when the environment has none (pip
+# ROS), unless a prefix on AMENT_PREFIX_PATH has one by now (e.g. ros-jazzy-control-msgs installed
+# since): it never shadows the released package.
+_stepper_cm=$_stepper_root/.venv/control_msgs
+if [ -f "$_stepper_cm/local_setup.bash" ]; then
+    _stepper_rest=${AMENT_PREFIX_PATH:-}
+    while [ -n "$_stepper_rest" ]; do
+        _stepper_p=${_stepper_rest%%:*}
+        case $_stepper_rest in *:*) _stepper_rest=${_stepper_rest#*:} ;; *) _stepper_rest= ;; esac
+        if [ "$_stepper_p" != "$_stepper_cm" ] && \
+            [ -e "$_stepper_p/share/ament_index/resource_index/packages/control_msgs" ]; then
+            _stepper_cm=
+            break
+        fi
+    done
+    [ -z "$_stepper_cm" ] || source "$_stepper_cm/local_setup.bash"
+    unset _stepper_rest _stepper_p
+fi
+unset _stepper_cm
 if [ -z "${STEPPER_NO_WORKSPACE:-}" ] && [ -f "$_stepper_root/install/local_setup.bash" ]; then
     source "$_stepper_root/install/local_setup.bash"
     # stepperctl (and the node executables) as plain commands

@@ -215,6 +215,52 @@ def bad_parameter_output(procs, tmp_path, vendor, old, new, timeout_s=20.0) -> l
     return p.output().strip().splitlines()
 
 
+class TrajectoryGoal:
+    """One goal to a node's ~/follow_joint_trajectory (control_msgs/action/FollowJointTrajectory)
+    through rclpy's ActionClient, as MoveIt's simple controller manager sends it; its feedback,
+    and when it was sent and when its result came (time.monotonic())."""
+
+    def __init__(self, bench, goal):
+        from control_msgs.action import FollowJointTrajectory
+        from rclpy.action import ActionClient
+        self.client = ActionClient(bench.ros.node, FollowJointTrajectory,
+                                   f'{bench.node_ns}/follow_joint_trajectory')
+        assert self.client.wait_for_server(timeout_sec=10)
+        self.bench, self.feedback = bench, []
+        self.status = self.result_t = self._result = None
+        done, self._got = threading.Event(), threading.Event()
+        self.sent_t = time.monotonic()
+        # in_spin: rclpy's ActionClient races its own executor when called from another thread
+        fut = bench.ros.in_spin(self.client.send_goal_async, goal,
+                                feedback_callback=lambda f: self.feedback.append(f.feedback))
+        fut.add_done_callback(lambda _f: done.set())
+        assert done.wait(10) and fut.result().accepted
+        self.handle = fut.result()
+
+        def got(f):
+            self.result_t = time.monotonic()
+            self.status, self._result = f.result().status, f.result().result
+            self._got.set()
+        bench.ros.in_spin(self.handle.get_result_async).add_done_callback(got)
+
+    def result(self, timeout_s):
+        """The result once the goal ended (its GoalStatus in `status`)."""
+        assert self._got.wait(timeout_s), f'no result within {timeout_s} s'
+        self.close()
+        return self._result
+
+    def cancel(self):
+        done = threading.Event()
+        self.bench.ros.in_spin(self.handle.cancel_goal_async).add_done_callback(
+            lambda _f: done.set())
+        assert done.wait(5.0)
+
+    def close(self):
+        # in the spin thread: destroyed from another one while the executor waits on it,
+        # rclpy fails the wait set ('action client pointer is invalid') and stops spinning
+        self.bench.ros.in_spin(self.client.destroy)
+
+
 class Track:
     """A simulator's true position (its ~/<drive>/true_position_steps at 20 Hz) with the time
     each sample arrived: when did the real axis stop?"""

@@ -8,14 +8,14 @@ transaction, one true-position sample and the middleware hops of the measurement
 
 import math
 import signal
-import threading
 import time
 
 import pytest
 from builtin_interfaces.msg import Duration
-from rosharness import MIDDLEWARE_S, Track, wait_for
-from stepper_drivers_msgs.action import FollowJointTrajectory
-from stepper_drivers_msgs.msg import DriveStatus, JointTolerance
+from control_msgs.action import FollowJointTrajectory
+from control_msgs.msg import JointTolerance
+from rosharness import MIDDLEWARE_S, Track, TrajectoryGoal as Goal, wait_for
+from stepper_drivers_msgs.msg import DriveStatus
 from test_rd4_ros import Bench as Rd4Bench
 from test_vector_step_ros import Rig as VectorRig
 from test_xmind_k_ros import Bench as XmindBench
@@ -81,34 +81,6 @@ def test_rd4_axes_on_one_line_arrive_together(rd4):
             + MIDDLEWARE_S, (d, late)
 
 
-class Goal:
-    """One follow_joint_trajectory goal through rclpy's ActionClient, with its feedback."""
-
-    def __init__(self, bench, goal):
-        from rclpy.action import ActionClient
-        self.client = ActionClient(bench.ros.node, FollowJointTrajectory,
-                                   f'{bench.node_ns}/follow_joint_trajectory')
-        assert self.client.wait_for_server(timeout_sec=10)
-        self.bench, self.feedback = bench, []
-        done = threading.Event()
-        # in_spin: rclpy's ActionClient races its own executor when called from another thread
-        fut = bench.ros.in_spin(self.client.send_goal_async, goal,
-                                feedback_callback=lambda f: self.feedback.append(f.feedback))
-        fut.add_done_callback(lambda _f: done.set())
-        assert done.wait(10) and fut.result().accepted
-        self.handle = fut.result()
-
-    def result(self, timeout_s):
-        got = threading.Event()
-        fut = self.bench.ros.in_spin(self.handle.get_result_async)
-        fut.add_done_callback(lambda _f: got.set())
-        assert got.wait(timeout_s)
-        # in the spin thread: destroyed from another one while the executor waits on it,
-        # rclpy fails the wait set ('action client pointer is invalid') and stops spinning
-        self.bench.ros.in_spin(self.client.destroy)
-        return fut.result().result
-
-
 def test_xplus_follow_action_gives_feedback_and_reaches_the_goal(xplus):
     for d in xplus.drives:
         xplus.enable(d)
@@ -136,16 +108,12 @@ def test_xplus_a_goal_running_when_the_node_is_stopped_gets_its_result(xplus):
         xplus.enable(d)
     g = Goal(xplus, FollowJointTrajectory.Goal(trajectory=trajectory(
         ['xplus_joint1', 'xplus_joint2'], [(3.0, [20.0, -20.0])])))
-    got = threading.Event()
-    fut = xplus.ros.in_spin(g.handle.get_result_async)
-    fut.add_done_callback(lambda _f: got.set())
     xplus.status('axis1', lambda m: m.moving, what='following')
     assert xplus.node.stop(signal.SIGTERM) == 0
-    assert got.wait(2.0), 'no result before the node ended'
+    result = g.result(2.0)                   # 'no result within 2 s': not before the node ended
     from action_msgs.msg import GoalStatus
-    assert fut.result().status == GoalStatus.STATUS_ABORTED, fut.result()
-    assert fut.result().result.error_string == 'the node is shutting down', fut.result()
-    xplus.ros.in_spin(g.client.destroy)
+    assert g.status == GoalStatus.STATUS_ABORTED, g.status
+    assert result.error_string == 'the node is shutting down', result
 
 
 def test_xplus_impossible_segment_is_refused_before_anything_moves(xplus):

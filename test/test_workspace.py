@@ -21,7 +21,8 @@ EXECUTABLES = {
 }
 # ROS packages a Python import may name, and the package.xml key that provides them
 ROS_IMPORTS = {'rclpy', 'std_msgs', 'std_srvs', 'sensor_msgs', 'diagnostic_msgs', 'rcl_interfaces',
-               'action_msgs', 'stepper_drivers_msgs', 'ament_index_python', 'launch', 'launch_ros'}
+               'action_msgs', 'stepper_drivers_msgs', 'ament_index_python', 'launch', 'launch_ros',
+               'control_msgs', 'trajectory_msgs'}
 
 
 def package_xml(pkg):

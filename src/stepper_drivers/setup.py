@@ -1,4 +1,5 @@
 from glob import glob
+from os.path import isfile
 import os
 import runpy
 
@@ -21,7 +22,8 @@ setup(
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
         ('share/' + package_name, ['package.xml']),
         ('share/' + package_name + '/launch', glob('launch/*.py')),
-        ('share/' + package_name + '/config', glob('config/*')),
+        ('share/' + package_name + '/config', [f for f in glob('config/*') if isfile(f)]),
+        ('share/' + package_name + '/config/moveit', glob('config/moveit/*')),
     ],
     install_requires=['setuptools'],
     zip_safe=True,

@@ -211,6 +211,9 @@ class Drive(abc.ABC):
     # Velocities up to this are run start-stop, without the profile's ramps (X-PLUS MT); the
     # trajectory planner needs it to time a move. 0: every move ramps.
     start_stop_steps_s: float = 0.0
+    # The least speed the drive runs a move at (its velocity resolution or range); a slower
+    # trajectory segment runs at this speed and arrives early. 0: any speed.
+    min_velocity_steps_s: float = 0.0
 
     def __init__(self, bus: Bus, name: str, params: Mapping[str, Any]):
         self.bus = bus
@@ -234,6 +237,13 @@ class Drive(abc.ABC):
     def disable(self) -> None: ...
 
     # Motion -----------------------------------------------------------------------------------
+    def move_time_s(self) -> float:
+        """What one `move_to` costs on the bus before the drive runs (its transactions),
+        estimated from the line settings: the trajectory follower makes its segments long
+        enough for the moves of every axis of a bus until it has timed real ones. 0: a fast
+        link, where it does not matter."""
+        return 0.0
+
     @abc.abstractmethod
     def move_to(self, target_steps: int, motion: Motion) -> None:
         """Start an absolute move; returns once the drive has accepted it."""

@@ -30,16 +30,19 @@ from typing import Callable
 
 from .drive import Drive, Motion, is_steps
 from .supervisor import COMMAND, URGENT, BusSupervisor
-from .trajectory import JointLimits, Segment, Trajectory, TrajectoryError, plan, trapezoid
+from .trajectory import (JointLimits, Segment, Trajectory, TrajectoryError, along, along_velocity,
+                         plan, retimed)
 
 logger = logging.getLogger(__name__)
 
 TICK_S = 0.02                 # how often a run checks tolerances and cancellation
-WAIT_STANDSTILL_S = 0.005     # a late axis's move waits for the segment before: checked this often
 LEAD_SMOOTHING = 0.5          # weight of the newest measured lead of a move
 LEAD_MAX_S = 0.5              # a lead measured longer than this (a busy line) counts as this
 STREAM_PREPARE_S = 0.3        # interpolated axes: mode 7 set up before a trajectory for now
 GOAL_WAIT_MAX_S = 10.0        # without a goal_time_tolerance: the longest wait for standstill
+# A segment lasts at least this many times what its bus needs to send the moves of its axes:
+# the polls and the other drives' commands share the line meanwhile.
+SEGMENT_MARGIN = 3.0
 # An interpolated axis is where its set point was this many SYNC periods ago: the point written
 # at a tick waits in the buffer behind the one before, is taken at the next tick's SYNC and
 # reached one period later.
@@ -65,6 +68,7 @@ class Axis:
     drive: Drive
     limits: JointLimits
     lead_s: float = 0.0     # learned: a move's own transactions before the drive runs
+    move_time_s: float = 0.0   # the drive's own estimate of lead_s (Drive.move_time_s)
 
     @property
     def interpolated(self) -> bool:
@@ -83,6 +87,16 @@ class Axis:
 
     def moving(self) -> bool:
         return bool(self.sup.slots[self.drive_name].state.moving)
+
+    def move_cost_s(self) -> float:
+        """What a move costs on the bus before the drive runs: as measured once one was,
+        the drive's estimate before."""
+        return self.lead_s if self.lead_s > 0 else self.move_time_s
+
+    def velocity_steps_s(self) -> float | None:
+        """The last poll's velocity; None where the drive cannot report one."""
+        state = self.sup.slots[self.drive_name].state
+        return float(state.velocity_steps_s) if state.velocity_valid else None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -104,19 +118,29 @@ def _aborted(code: int, text: str) -> Outcome:
 
 @dataclasses.dataclass(frozen=True)
 class Tolerances:
-    """Per joint, in steps; 0 or absent: not checked (JointTrajectoryController's meaning)."""
+    """Per joint, in drive units, as JointTrajectoryController resolves a goal's tolerances
+    (the node turns -1 into 'not checked' and 0 into the default).
+
+    Path (position, velocity): absent or 0: not checked. Goal position: absent or 0: one step
+    (the drive's resolution); None: not checked. Goal velocity: absent or 0: standstill (the
+    drive's own moving flag); None: not checked; > 0: |velocity| within it. goal_time_s: 0 no
+    limit (until every joint stands still, at most GOAL_WAIT_MAX_S)."""
 
     path_steps: dict[str, float] = dataclasses.field(default_factory=dict)
-    goal_steps: dict[str, float] = dataclasses.field(default_factory=dict)
+    goal_steps: dict[str, float | None] = dataclasses.field(default_factory=dict)
     goal_time_s: float = 0.0
+    path_velocity_steps_s: dict[str, float] = dataclasses.field(default_factory=dict)
+    goal_velocity_steps_s: dict[str, float | None] = dataclasses.field(default_factory=dict)
 
 
 class Run:
     """One trajectory being followed; `done` resolves to an Outcome."""
 
     def __init__(self, follower: 'Follower', traj: Trajectory, start_t: float,
-                 start_steps: dict[str, float], segments: list[Segment], tol: Tolerances):
+                 start_steps: dict[str, float], segments: list[Segment], tol: Tolerances,
+                 min_segment_s: float = 0.0):
         self.follower = follower
+        self.min_segment_s = min_segment_s
         self.traj = traj
         self.start_t = start_t
         self.start_steps = start_steps
@@ -140,17 +164,43 @@ class Run:
     # ------------------------------------------------------------------------ other threads
     def desired_steps(self, t: float) -> dict[str, float]:
         """Where each joint of the trajectory should be at monotonic time t (the planned
-        trapezoids)."""
+        trapezoids, each from when its move reaches the drive)."""
+        return self._desired(t)[0]
+
+    def desired_velocity_steps_s(self, t: float) -> dict[str, float]:
+        """The planned velocity of each joint at monotonic time t."""
+        return self._desired(t)[1]
+
+    def _desired(self, t: float) -> tuple[dict[str, float], dict[str, float]]:
         clock_s = t - self.start_t
         pos = dict(self.start_steps)
+        vel = {j: 0.0 for j in self.start_steps}
         for seg in self.segments:
             if clock_s <= seg.start_s:
                 break
             tau = min(clock_s, seg.end_s) - seg.start_s
             for m in seg.moves:
-                pos[m.joint] = _along(pos[m.joint], m.target_steps, m.velocity_steps_s,
-                                      m.acceleration_steps_s2, tau)
-        return pos
+                profile = (pos[m.joint], m.target_steps, m.velocity_steps_s,
+                           m.acceleration_steps_s2, tau - m.start_delay_s)
+                vel[m.joint] = along_velocity(*profile) if clock_s < seg.end_s else 0.0
+                pos[m.joint] = along(*profile)
+        return pos, vel
+
+    def merge_summary(self) -> str | None:
+        """One line on the points merged into longer segments; None when none were."""
+        merged = sum(seg.merged for seg in self.segments)
+        if not merged:
+            return None
+        worst: dict[str, float] = {}
+        for seg in self.segments:
+            for joint, dev in seg.deviation_steps:
+                worst[joint] = max(worst.get(joint, 0.0), dev)
+        far = ', '.join(f'{j} {d / self.follower.axes[j].limits.steps_per_unit:.3g} '
+                        f'{self.follower.axes[j].limits.unit}' for j, d in worst.items())
+        return (f'{len(self.segments) + merged} points followed as {len(self.segments)} '
+                f'segments of at least {self.min_segment_s:.3g} s (what the bus needs to send '
+                f'the moves of its axes) or as long as the joints\' accelerations need; the '
+                f'plan passes the merged points within {far}')
 
     def cancel(self, why: str) -> None:
         self._cancel_why = why
@@ -185,26 +235,20 @@ class Run:
                 return problem
             if self._replaced_at is not None and clock() >= self._replaced_at:
                 return _aborted(SUCCESSFUL, REPLACED)
-            # An axis whose segment before still runs (it arrived late) gets its move once it
-            # stands: a drive that cannot take a new target while it moves (X-MIND K) would
-            # stop short and start again. The moves of the others go out at once, back to back.
+            # The moves go out at once, back to back. An axis whose segment before still runs
+            # (it arrived late) takes the new target on the way where its drive can (position
+            # override: RD4, X-PLUS MT, Vector Step); a drive that cannot (X-MIND K) waits in
+            # its own move_to for the run that ends.
             end_t = self.start_t + seg.end_s
-            waiting = [m for m in seg.moves if m.joint not in self.streamed]
-            while waiting:
-                for move in [m for m in waiting if not self.follower.axes[m.joint].moving()
-                             or clock() >= end_t]:
-                    axis = self.follower.axes[move.joint]
-                    self._jobs.append(axis.sup.submit(
-                        axis.drive_name, COMMAND,
-                        self._move_job(axis, move, previous[move.joint], end_t),
-                        f'trajectory segment to {move.target_steps:g} steps', disarms=True))
-                    previous[move.joint] = move.target_steps
-                    waiting.remove(move)
-                if waiting:
-                    problem = self._check()
-                    if problem is not None:
-                        return problem
-                    self._cancel.wait(WAIT_STANDSTILL_S)
+            for move in seg.moves:
+                if move.joint in self.streamed:
+                    continue
+                axis = self.follower.axes[move.joint]
+                self._jobs.append(axis.sup.submit(
+                    axis.drive_name, COMMAND,
+                    self._move_job(axis, move, previous[move.joint], seg_t, end_t),
+                    f'trajectory segment to {move.target_steps:g} steps', disarms=True))
+                previous[move.joint] = move.target_steps
         problem = self._wait_until(self.end_t)
         if problem is not None:
             return problem
@@ -231,45 +275,36 @@ class Run:
                 return _aborted(GOAL_TOLERANCE_VIOLATED, '; '.join(far))
             self._cancel.wait(TICK_S)
 
-    def _move_job(self, axis: Axis, move, from_steps: float, end_t: float) -> Callable:
+    def _move_job(self, axis: Axis, move, from_steps: float, seg_t: float, end_t: float
+                  ) -> Callable:
         clock = self.follower.clock
 
         def job():
             t0 = clock()
-            v, a = self._retimed(axis, move, from_steps, end_t - t0 - axis.lead_s)
+            # still moving: the drive may wait for its run to end first, which is no lead
+            learn = not axis.moving()
+            # the drive runs after this move's own transactions, and not before the plan
+            # expects it to (the moves of the other axes on the bus go out meanwhile)
+            runs_t = max(t0 + axis.lead_s, seg_t + move.start_delay_s)
+            v, a = self._retimed(axis, move, from_steps, end_t - runs_t)
             if math.isinf(a):                    # start-stop: the drive ignores the ramp
                 a = axis.limits.max_acceleration_steps_s2
             result = axis.drive.move_to(int(round(move.target_steps)), Motion(v, a, a))
             if is_steps(result):
                 result = yield from result
             # its move's own transactions (checks, writes) before the drive runs: learned
-            axis.lead_s += LEAD_SMOOTHING * (min(clock() - t0, LEAD_MAX_S) - axis.lead_s)
+            if learn:
+                axis.lead_s += LEAD_SMOOTHING * (min(clock() - t0, LEAD_MAX_S) - axis.lead_s)
             return result
         return job
 
     @staticmethod
     def _retimed(axis: Axis, move, from_steps: float, left_s: float) -> tuple[float, float]:
-        """The segment's profile for the time really left: with the planned ramp time (the
-        axes keep their proportions) when that fits the joint's limits, else the shortest ramp
-        its max_acceleration allows (it still arrives with the others), else the planned
-        profile (it arrives late)."""
+        """The segment's profile for the time really left (trajectory.retimed), else the
+        planned one (it arrives late)."""
         planned = (move.velocity_steps_s, move.acceleration_steps_s2)
-        d = abs(move.target_steps - from_steps)
-        lim = axis.limits
-        if left_s <= 0 or d == 0:
-            return planned
-        ramp_s = 0.0 if math.isinf(planned[1]) else planned[0] / planned[1]
-        if ramp_s == 0:
-            v = d / left_s
-            # faster than start-stop would make the drive ramp: later, not earlier
-            return (v, math.inf) if v <= min(lim.start_stop_steps_s,
-                                             lim.max_velocity_steps_s) else planned
-        if left_s > 2 * ramp_s:
-            v = d / (left_s - ramp_s)
-            if v <= lim.max_velocity_steps_s and v / ramp_s <= lim.max_acceleration_steps_s2:
-                return v, v / ramp_s
-        fastest = trapezoid(d, left_s, lim.max_velocity_steps_s, lim.max_acceleration_steps_s2)
-        return planned if isinstance(fastest, str) else fastest
+        again = retimed(move.target_steps - from_steps, left_s, planned, axis.limits)
+        return planned if again is None else again
 
     def _wait_until(self, t: float) -> Outcome | None:
         clock = self.follower.clock
@@ -306,43 +341,50 @@ class Run:
                     return _aborted(PATH_TOLERANCE_VIOLATED,
                                     f'{joint}: {err:+.0f} steps from the path (path tolerance '
                                     f'{tol:g} steps) at {now - self.start_t:.3f} s')
+        for joint, tol in self.tol.path_velocity_steps_s.items():
+            if tol > 0 and joint in self.follower.axes:
+                axis = self.follower.axes[joint]
+                velocity = axis.velocity_steps_s()
+                if velocity is None:
+                    continue                   # refused at the goal: the drive reports none
+                _, at = axis.sample()
+                err = velocity - self.desired_velocity_steps_s(min(at, now)).get(joint, 0.0)
+                if abs(err) > tol:
+                    self._stop_axes()
+                    return _aborted(PATH_TOLERANCE_VIOLATED,
+                                    f'{joint}: velocity {err:+.0f} steps/s from the path\'s '
+                                    f'(path velocity tolerance {tol:g} steps/s) at '
+                                    f'{now - self.start_t:.3f} s')
         return None
 
     def _off_goal(self) -> list[str]:
         far = []
         for joint in self.traj.joints:
             axis = self.follower.axes[joint]
-            tol = self.tol.goal_steps.get(joint, 0.0) or 1.0   # unset: the final step
-            err = axis.position_steps() - self.final_steps[joint]
-            if abs(err) > tol or axis.moving():
-                far.append(f'{joint}: {err:+.0f} steps from the goal (goal tolerance {tol:g} '
-                           f'steps){", still moving" if axis.moving() else ""}')
+            why = []
+            tol = self.tol.goal_steps.get(joint, 0.0)
+            if tol is not None:
+                tol = tol or 1.0                          # the default: the final step
+                err = axis.position_steps() - self.final_steps[joint]
+                if abs(err) > tol:
+                    why.append(f'{err:+.0f} steps from the goal (goal tolerance {tol:g} steps)')
+            vtol = self.tol.goal_velocity_steps_s.get(joint, 0.0)
+            if vtol is None:
+                pass
+            elif vtol > 0:
+                velocity = axis.velocity_steps_s()
+                if velocity is not None and abs(velocity) > vtol:
+                    why.append(f'at {velocity:+.0f} steps/s (goal velocity tolerance {vtol:g} '
+                               'steps/s)')
+            elif axis.moving():
+                why.append('still moving')
+            if why:
+                far.append(f'{joint}: {", ".join(why)}')
         return far
 
     def _stop_axes(self) -> None:
         for joint in self.traj.joints:
             self.follower.stop_axis(self.follower.axes[joint], 'trajectory stopped')
-
-
-def _along(p0: float, p1: float, v: float, a: float, tau: float) -> float:
-    """Position tau into a symmetric trapezoid from p0 to p1 with cruise v and ramps a."""
-    d = abs(p1 - p0)
-    if d == 0 or v <= 0 or a <= 0:
-        return p1
-    sign = 1.0 if p1 > p0 else -1.0
-    t_ramp = 0.0 if math.isinf(a) else v / a
-    total = d / v + t_ramp
-    if tau >= total:
-        return p1
-    if t_ramp == 0.0:
-        s = v * tau
-    elif tau < t_ramp:
-        s = 0.5 * a * tau * tau
-    elif tau < total - t_ramp:
-        s = 0.5 * a * t_ramp * t_ramp + v * (tau - t_ramp)
-    else:
-        s = d - 0.5 * a * (total - tau) ** 2
-    return p0 + sign * min(s, d)
 
 
 class Follower:
@@ -381,9 +423,12 @@ class Follower:
                                for j in traj.joints}
             else:
                 start_steps = {j: self.axes[j].position_steps() for j in traj.joints}
+            min_segment_s = self.min_segment_s(traj.joints)
             segments = plan(traj, start_steps, {j: self.axes[j].limits for j in traj.joints},
-                            from_s=max(0.0, now - start_t))
-            run = Run(self, traj, start_t, start_steps, segments, tol)
+                            from_s=max(0.0, now - start_t), min_segment_s=min_segment_s,
+                            path_tolerance_steps=tol.path_steps,
+                            move_times_s=self.move_times_s(traj.joints))
+            run = Run(self, traj, start_t, start_steps, segments, tol, min_segment_s)
             if old is not None and not old.done.done():
                 old.replace_at(take_over)
                 # joints the new trajectory does not name hold: those the old one was moving
@@ -394,6 +439,23 @@ class Follower:
             self.current = run
         run._thread.start()
         return run
+
+    def move_times_s(self, joints) -> dict[str, tuple[object, float]]:
+        """Per joint moved by moves (not streamed): its bus and what a move costs there (the
+        measured time, or the drive's estimate before the first)."""
+        return {j: (id(self.axes[j].sup), self.axes[j].move_cost_s())
+                for j in joints if not self.axes[j].interpolated}
+
+    def min_segment_s(self, joints) -> float:
+        """The least duration of a segment: what the busiest bus needs to send one move to
+        each of its axes (a move's measured time, or the drive's estimate before the first),
+        times SEGMENT_MARGIN. Streamed (interpolated) axes take no moves."""
+        per_bus: dict[int, float] = {}
+        for joint in joints:
+            axis = self.axes[joint]
+            if not axis.interpolated:
+                per_bus[id(axis.sup)] = per_bus.get(id(axis.sup), 0.0) + axis.move_cost_s()
+        return SEGMENT_MARGIN * max(per_bus.values(), default=0.0)
 
     def _stop_later(self, joints: list[str], t: float) -> None:
         def stop():

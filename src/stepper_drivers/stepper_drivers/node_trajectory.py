@@ -1,21 +1,26 @@
 """Trajectories through ROS: `~/joint_trajectory` and `~/follow_joint_trajectory` of a DriveNode.
 
-The semantics are JointTrajectoryController's (see trajectory.py); the following is follow.py's,
-through the bus owners. This module only converts: joint units to steps with each drive's
-UnitConversion (the one conversion place), header stamps to the monotonic clock the owners use,
-and outcomes to the FollowJointTrajectory result.
+The action is control_msgs/action/FollowJointTrajectory, so MoveIt's simple controller manager
+and every client written for ros2_controllers' JointTrajectoryController drive the node. The
+semantics are JointTrajectoryController's (see trajectory.py); the following is follow.py's,
+through the bus owners. This module checks the goal and converts: joint units to steps with each
+drive's UnitConversion (the one conversion place), the goal's tolerances as JTC resolves them
+(-1 not checked, 0 the default, > 0 the bound), header stamps to the monotonic clock the owners
+use, and outcomes to the result. Unlike JTC, which rejects a goal it cannot take without saying
+why, a goal is accepted and then aborted with the result code and a text naming the problem.
 """
 
 from __future__ import annotations
 
 import concurrent.futures
+import math
 import time
 from typing import TYPE_CHECKING
 
+from control_msgs.action import FollowJointTrajectory
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.time import Time
 from std_msgs.msg import Header
-from stepper_drivers_msgs.action import FollowJointTrajectory
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from .follow import (INVALID_GOAL, INVALID_JOINTS, OLD_HEADER_TIMESTAMP, Axis, Follower, Run,
@@ -26,6 +31,16 @@ if TYPE_CHECKING:
     from .node import DriveHandle, DriveNode
 
 FEEDBACK_PERIOD_S = 0.1
+ERASE = -1.0              # control_msgs/JointTolerance: "erased", not checked
+ERASE_EPS = 1.1920929e-07  # JTC compares with float's epsilon
+
+
+class GoalError(TrajectoryError):
+    """A goal refused before anything moves, with its FollowJointTrajectory result code."""
+
+    def __init__(self, code: int, text: str):
+        super().__init__(text)
+        self.code = code
 
 
 class TrajectoryInterface:
@@ -58,8 +73,9 @@ class TrajectoryInterface:
             limits = JointLimits(
                 lo, hi, abs(to(h.param('max_velocity'))), abs(to(h.param('max_acceleration'))),
                 h.conv.steps_per_unit, h.cfg.params.get('unit', 'rad'),
-                h.drive.start_stop_steps_s)
-            axis = Axis(joint, h.name, h.sup, h.drive, limits)
+                h.drive.start_stop_steps_s, h.drive.min_velocity_steps_s)
+            axis = Axis(joint, h.name, h.sup, h.drive, limits,
+                        move_time_s=h.drive.move_time_s())
             old = self.follower.axes.get(joint)
             if old is not None and old.drive is h.drive:
                 axis.lead_s = old.lead_s            # what its moves took so far
@@ -110,7 +126,11 @@ class TrajectoryInterface:
         traj = self._trajectory(msg)
         self._ready(traj.joints)
         self.follower.axes = self._axes()
-        return self.follower.follow(traj, self._start_t(msg.header.stamp), tol)
+        run = self.follower.follow(traj, self._start_t(msg.header.stamp), tol)
+        merged = run.merge_summary()
+        if merged:
+            self.node.log.info(f'trajectory of {list(traj.joints)}: {merged}')
+        return run
 
     # ---------------------------------------------------------------------------------- topic
     def on_trajectory(self, msg: JointTrajectory) -> None:
@@ -134,35 +154,100 @@ class TrajectoryInterface:
 
     # --------------------------------------------------------------------------------- action
     def _tolerances(self, goal) -> Tolerances:
-        def steps(items) -> dict[str, float]:
-            out = {}
+        """The goal's tolerances in drive units, resolved as JointTrajectoryController does:
+        > 0 the bound, 0 the node's default, -1 not checked; GoalError for anything else, for a
+        joint this node does not drive, and for what no drive here can check (acceleration;
+        velocity of a drive that reports none)."""
+        known = self.node.by_joint
+        out = {'path': {}, 'path_v': {}, 'goal': {}, 'goal_v': {}}
+        for where, items, pos_key, vel_key in (
+                ('path_tolerance', goal.path_tolerance, 'path', 'path_v'),
+                ('goal_tolerance', goal.goal_tolerance, 'goal', 'goal_v')):
             for t in items:
-                if t.name in self.node.by_joint and t.position > 0:
-                    out[t.name] = abs(self._handle(t.name).conv.to_steps(t.position))
-            return out
+                if t.name not in known:
+                    raise GoalError(INVALID_JOINTS, f'{where}: joint {t.name!r} is not driven '
+                                    f'by this node (its joints: {list(known)})')
+                h = self._handle(t.name)
+                unit = h.cfg.params.get('unit', 'rad')
+                values = {}
+                for field in ('position', 'velocity', 'acceleration'):
+                    value = getattr(t, field)
+                    if not math.isfinite(value) or (value < 0 and
+                                                     abs(value - ERASE) > ERASE_EPS):
+                        raise GoalError(INVALID_GOAL, f'{where} of {t.name}: {field} {value:g} '
+                                        'is not a tolerance (> 0 a bound, 0 the default, -1 '
+                                        'not checked)')
+                    values[field] = None if value < 0 else value
+                if values['acceleration']:
+                    raise GoalError(INVALID_GOAL, f'{where} of {t.name}: acceleration '
+                                    f'{values["acceleration"]:g} {unit}/s^2 cannot be checked: '
+                                    'the drives report no acceleration (0 or -1: not checked)')
+                if values['velocity'] and not h.state.velocity_valid:
+                    raise GoalError(INVALID_GOAL, f'{where} of {t.name}: velocity '
+                                    f'{values["velocity"]:g} {unit}/s cannot be checked: drive '
+                                    f'{h.name} reports no velocity (0 or -1: not checked)')
+                steps = abs(h.conv.steps_per_unit)
+                for key, field in ((pos_key, 'position'), (vel_key, 'velocity')):
+                    value = values[field]
+                    if value is None:
+                        out[key][t.name] = None              # -1: not checked
+                    elif value > 0:
+                        out[key][t.name] = value * steps
+                    else:
+                        out[key].pop(t.name, None)           # 0: the default
         d = goal.goal_time_tolerance
-        return Tolerances(steps(goal.path_tolerance), steps(goal.goal_tolerance),
-                          d.sec + d.nanosec * 1e-9)
+        goal_time_s = d.sec + d.nanosec * 1e-9
+        if goal_time_s < 0 and abs(goal_time_s - ERASE) > ERASE_EPS:
+            raise GoalError(INVALID_GOAL, f'goal_time_tolerance {goal_time_s:g} s is not a '
+                            'tolerance (> 0 a bound, 0 the default: none, -1 none)')
+        return Tolerances(
+            path_steps={j: v for j, v in out['path'].items() if v is not None},
+            goal_steps=out['goal'], goal_time_s=max(goal_time_s, 0.0),
+            path_velocity_steps_s={j: v for j, v in out['path_v'].items() if v is not None},
+            goal_velocity_steps_s=out['goal_v'])
+
+    @staticmethod
+    def _check_goal(goal) -> None:
+        """What no node here can take: multi-DOF joints and their component tolerances."""
+        multi = goal.multi_dof_trajectory
+        if multi.joint_names or multi.points:
+            raise GoalError(INVALID_GOAL, f'multi_dof_trajectory (joints '
+                            f'{list(multi.joint_names)}, {len(multi.points)} points): these '
+                            'drives are single-DOF joints (revolute or prismatic); send them in '
+                            'trajectory')
+        for where in ('component_path_tolerance', 'component_goal_tolerance'):
+            items = getattr(goal, where)
+            if items:
+                raise GoalError(INVALID_GOAL, f'{where} ({[c.joint_name for c in items]}): '
+                                'component tolerances apply to multi-DOF joints, and this node '
+                                'drives none')
+
+    @staticmethod
+    def _code(error: TrajectoryError) -> int:
+        if isinstance(error, GoalError):
+            return error.code
+        text = str(error)
+        return (INVALID_JOINTS if 'not driven by this node' in text
+                or 'name a joint twice' in text else
+                OLD_HEADER_TIMESTAMP if 'ended' in text else INVALID_GOAL)
 
     async def execute(self, goal_handle):
         goal = goal_handle.request
         result = FollowJointTrajectory.Result()
         msg = goal.trajectory
-        if not msg.points:
-            self.follower.stop('empty trajectory on follow_joint_trajectory')
-            goal_handle.succeed()
-            result.error_code, result.error_string = 0, 'empty trajectory: stopped'
-            return result
         try:
-            run = self._start(msg, self._tolerances(goal))
+            self._check_goal(goal)
+            tol = self._tolerances(goal)
+            if not msg.points:
+                self.follower.stop('empty trajectory on follow_joint_trajectory')
+                goal_handle.succeed()
+                result.error_code, result.error_string = 0, 'empty trajectory: stopped'
+                return result
+            run = self._start(msg, tol)
         except TrajectoryError as e:
             goal_handle.abort()
-            text = str(e)
-            result.error_code = (INVALID_JOINTS if 'not driven by this node' in text
-                                 or 'name a joint twice' in text else
-                                 OLD_HEADER_TIMESTAMP if 'ended' in text else INVALID_GOAL)
-            result.error_string = text
-            self.node.log.warning(f'follow_joint_trajectory refused: {text}')
+            result.error_code, result.error_string = self._code(e), str(e)
+            self.node.log.warning(f'follow_joint_trajectory refused: {e}')
             return result
         fb = FollowJointTrajectory.Feedback()
         fb.joint_names = list(run.traj.joints)
@@ -192,10 +277,17 @@ class TrajectoryInterface:
             h = self._handle(joint)
             # desired at the time of the snapshot `actual` comes from (up to a poll period old):
             # the error is then the drive's following error, not the age of the snapshot
-            want = h.conv.from_steps(run.desired_steps(h.slot.state_t)[joint])
+            t = h.slot.state_t
+            want = h.conv.from_steps(run.desired_steps(t)[joint])
+            want_v = h.conv.from_steps(run.desired_velocity_steps_s(t)[joint])
+            s = h.state
+            have_v = h.conv.from_steps(s.velocity_steps_s) if s.velocity_valid else math.nan
             d.positions.append(float(want))
+            d.velocities.append(float(want_v))
             a.positions.append(float(h.position))
+            a.velocities.append(float(have_v))
             e.positions.append(float(want - h.position))
+            e.velocities.append(float(want_v - have_v))
         fb.desired, fb.actual, fb.error = d, a, e
 
     async def _sleep(self, seconds: float, done: concurrent.futures.Future) -> None:

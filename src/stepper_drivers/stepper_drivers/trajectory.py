@@ -13,6 +13,15 @@ gets a trapezoidal profile with one common ramp time, scaled by its distance, th
 exactly at the waypoint's time: all axes start together, keep their proportions (a straight path
 between the points) and arrive together. A segment that needs more than a joint's max_velocity
 or max_acceleration is refused before anything moves, naming the joint and the limit.
+
+Dense trajectories (a planner's point every 10-100 ms, with tiny segments where its timing
+starts and ends): a segment must last at least `min_segment_s`, the time the bus needs to send
+the moves of its axes (a serial line at 9600-19200 baud takes tens of ms a transaction), so
+consecutive points are merged into one segment until it does, or until a longer segment fits
+the joints' max_acceleration. The merged plan is checked against every point it skips: beyond a
+joint's path tolerance the trajectory is refused before anything moves. An axis whose segment
+is slower than its drive's least speed (`min_velocity_steps_s`) runs at that speed and arrives
+early: it is off the path by less than that speed times the segment's duration.
 """
 
 from __future__ import annotations
@@ -47,6 +56,9 @@ class JointLimits:
     # A drive that jumps to velocities up to this without ramps (X-PLUS MT §13 "Motion
     # Profiles": start-stop at PV <= 16000 Hz); 0: every move ramps.
     start_stop_steps_s: float = 0.0
+    # The least speed the drive runs a move at (Vector Step: 0.01 rev/s, the resolution of
+    # 0x6081; X-MIND K: 1 Hz); a slower segment runs at this speed and arrives early. 0: none.
+    min_velocity_steps_s: float = 0.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -63,21 +75,29 @@ class Trajectory:
 
 @dataclasses.dataclass(frozen=True)
 class AxisMove:
-    """One axis's part of one segment: a move to `target_steps` with this profile."""
+    """One axis's part of one segment: a move to `target_steps` with this profile, starting
+    `start_delay_s` after the segment's start (when its move reaches the drive: on a serial
+    line, after the moves of the axes before it and its own transactions)."""
 
     joint: str
     target_steps: float
     velocity_steps_s: float
     acceleration_steps_s2: float
+    start_delay_s: float = 0.0
 
 
 @dataclasses.dataclass(frozen=True)
 class Segment:
-    """From `start_s` to `end_s` (trajectory time): the moves that start together at start_s."""
+    """From `start_s` to `end_s` (trajectory time): the moves that start together at start_s,
+    to the trajectory's point `point`; `merged` points before it were merged into it."""
 
     start_s: float
     end_s: float
     moves: tuple[AxisMove, ...]
+    point: int = -1
+    merged: int = 0
+    # per joint, how far the plan passes from the points merged into this segment [steps]
+    deviation_steps: tuple[tuple[str, float], ...] = ()
 
 
 def build(joints: Sequence[str], times_s: Sequence[float],
@@ -156,7 +176,8 @@ def segment_profiles(distances: dict[str, float], duration_s: float,
     T = duration_s
     if all(d / T <= min(limits[j].start_stop_steps_s, limits[j].max_velocity_steps_s)
            for j, d in moving.items()):
-        return {j: (d / T, math.inf) for j, d in moving.items()}
+        return {j: (max(d / T, limits[j].min_velocity_steps_s), math.inf)
+                for j, d in moving.items()}
     for fraction in fractions[:-1]:
         found = _common_ramp(moving, T, limits, fraction)
         if not isinstance(found, Unreachable):
@@ -183,41 +204,210 @@ def _common_ramp(moving: dict[str, float], T: float, limits: dict[str, JointLimi
             return Unreachable(j, f'needs {v:.4g} steps/s to cover {d:.6g} steps in {T:g} s '
                                f'(max_velocity is {limits[j].max_velocity_steps_s:.4g} '
                                'steps/s)')
-        out[j] = (v, v / t_r if t_r > 0 else math.inf)
+        # slower than the drive can run: at its least speed, with the same ramp (arrives early)
+        v = max(v, limits[j].min_velocity_steps_s)
+        out[j] = (v, min(v / t_r, limits[j].max_acceleration_steps_s2) if t_r > 0 else math.inf)
     return out
 
 
+def retimed(distance_steps: float, left_s: float, planned: tuple[float, float],
+            lim: JointLimits) -> tuple[float, float] | None:
+    """The profile that covers `distance_steps` in the `left_s` really left of a segment planned
+    as `planned` (velocity, acceleration): with the planned ramp time when that fits the
+    joint's limits (the axes keep their proportions), else the shortest ramp its
+    max_acceleration allows; None when it cannot arrive in time."""
+    d = abs(distance_steps)
+    if d == 0:
+        return planned
+    if left_s <= 0:
+        return None
+    ramp_s = 0.0 if math.isinf(planned[1]) else planned[0] / planned[1]
+    if ramp_s == 0:
+        v = max(d / left_s, lim.min_velocity_steps_s)
+        # faster than start-stop would make the drive ramp: later, not earlier
+        return (v, math.inf) if v <= min(lim.start_stop_steps_s,
+                                         lim.max_velocity_steps_s) else None
+    if left_s > 2 * ramp_s:
+        v = max(d / (left_s - ramp_s), lim.min_velocity_steps_s)
+        if v <= lim.max_velocity_steps_s and v / ramp_s <= lim.max_acceleration_steps_s2:
+            return v, v / ramp_s
+    fastest = trapezoid(d, left_s, lim.max_velocity_steps_s, lim.max_acceleration_steps_s2)
+    if isinstance(fastest, str):
+        return None
+    return max(fastest[0], lim.min_velocity_steps_s), fastest[1]
+
+
 def plan(traj: Trajectory, start_steps: dict[str, float], limits: dict[str, JointLimits],
-         from_s: float = 0.0) -> list[Segment]:
+         from_s: float = 0.0, min_segment_s: float = 0.0,
+         path_tolerance_steps: dict[str, float] | None = None,
+         move_times_s: dict[str, tuple[object, float]] | None = None) -> list[Segment]:
     """The synchronized segments of `traj` from trajectory time `from_s` (0: its start; later
     when it starts in the past), each axis from `start_steps` (where the drives are now);
     TrajectoryError naming the joint, the point and the limit when any segment cannot be met:
-    then nothing is sent."""
-    segments = []
-    previous = {j: start_steps[j] for j in traj.joints}
-    t0 = from_s
-    for k, point in enumerate(traj.points):
-        if point.time_s <= from_s:
-            continue                                  # already past: JTC drops them too
-        targets = dict(zip(traj.joints, point.positions_steps))
-        for joint, target in targets.items():
+    then nothing is sent.
+
+    Points are merged into one segment while it is shorter than `min_segment_s` (the bus's time
+    to send a segment's moves) or needs more than a joint's max_acceleration; the last point is
+    always a segment's end, and no segment is left shorter than `min_segment_s` at the end of
+    the trajectory. The plan of a merged segment is checked at each point it skips against
+    `path_tolerance_steps` (per joint; 0 or absent: not bounded).
+
+    `move_times_s` (joint: (its bus, what a move costs there)): the moves of a segment go out
+    at its start one after the other on each bus, so each axis starts later by the moves
+    before it and its own; its profile is planned for the time left then."""
+    tol = path_tolerance_steps or {}
+    lines = move_times_s or {}
+    due = [(k, p) for k, p in enumerate(traj.points) if p.time_s > from_s]
+    for k, point in due:                             # points already past: JTC drops them too
+        for joint, target in zip(traj.joints, point.positions_steps):
             lim = limits[joint]
             if not lim.min_steps <= target <= lim.max_steps:
                 raise TrajectoryError(
                     f'{joint}: point {k} at {target / lim.steps_per_unit:g} {lim.unit} is '
                     f'outside min_position..max_position ({lim.min_steps / lim.steps_per_unit:g}'
                     f'..{lim.max_steps / lim.steps_per_unit:g} {lim.unit})')
-        profiles = segment_profiles({j: targets[j] - previous[j] for j in traj.joints},
-                                    point.time_s - t0, limits, PLAN_FRACTIONS)
-        if isinstance(profiles, Unreachable):
-            raise TrajectoryError(f'{profiles.joint}: segment to point {k} ({t0:g} s to '
-                                  f'{point.time_s:g} s) {profiles.why}')
-        moves = tuple(AxisMove(j, targets[j], *profiles[j]) for j in traj.joints
-                      if j in profiles)
-        segments.append(Segment(t0, point.time_s, moves))
-        previous.update(targets)
-        t0 = point.time_s
+    segments: list[Segment] = []
+    previous = {j: start_steps[j] for j in traj.joints}
+    t0 = from_s
+    end_s = due[-1][1].time_s if due else from_s
+    i = 0
+    while i < len(due):
+        first_problem = None
+        for j in range(i, len(due)):
+            k, point = due[j]
+            last = j == len(due) - 1
+            if not last and (point.time_s - t0 < min_segment_s
+                             or end_s - point.time_s < min_segment_s):
+                continue                  # too short for the bus, or leaves a too short tail
+            targets = dict(zip(traj.joints, point.positions_steps))
+            profiles = segment_profiles({jn: targets[jn] - previous[jn] for jn in traj.joints},
+                                        point.time_s - t0, limits, PLAN_FRACTIONS)
+            if isinstance(profiles, Unreachable):
+                if first_problem is None:
+                    first_problem = TrajectoryError(
+                        f'{profiles.joint}: segment to point {k} ({t0:g} s to {point.time_s:g} '
+                        f's) {profiles.why}')
+                if last:
+                    raise first_problem
+                continue                  # a longer segment needs less acceleration
+            moves = _delayed(traj.joints, profiles, targets, previous, point.time_s - t0,
+                             limits, lines)
+            if isinstance(moves, Unreachable):
+                if first_problem is None:
+                    first_problem = TrajectoryError(
+                        f'{moves.joint}: segment to point {k} ({t0:g} s to {point.time_s:g} '
+                        f's) {moves.why}')
+                if not last:
+                    continue              # a longer segment leaves it more time
+                moves = tuple(AxisMove(jn, targets[jn], *profiles[jn]) for jn in traj.joints
+                              if jn in profiles)      # it arrives late: the goal decides
+            deviation = _deviation(traj, due[i:j], t0, previous, moves, limits, tol,
+                                   min_segment_s, k)
+            segments.append(Segment(t0, point.time_s, moves, k, j - i, deviation))
+            previous.update(targets)
+            t0 = point.time_s
+            i = j + 1
+            break
     return segments
+
+
+def _delayed(joints, profiles: dict[str, tuple[float, float]], targets: dict[str, float],
+             previous: dict[str, float], duration_s: float, limits: dict[str, JointLimits],
+             lines: dict[str, tuple[object, float]]) -> tuple[AxisMove, ...] | Unreachable:
+    """The segment's moves, each starting when its move will have reached its drive: the bus
+    owner finishes one drive's move before it takes the next one's (a running operation goes
+    first), so an axis starts after the moves of the axes before it on its bus and its own."""
+    sent: dict[object, float] = {}
+    moves = []
+    for jn in joints:
+        if jn not in profiles:
+            continue
+        v, a = profiles[jn]
+        delay = 0.0
+        if jn in lines:
+            bus, cost_s = lines[jn]
+            delay = sent[bus] = sent.get(bus, 0.0) + cost_s
+        if delay > 0:
+            again = retimed(targets[jn] - previous[jn], duration_s - delay, (v, a), limits[jn])
+            if again is None:
+                return Unreachable(jn, f'cannot arrive in time: its move reaches the drive '
+                                   f'{delay:.3g} s into the segment (after the moves before it '
+                                   'on its bus and its own transactions)')
+            v, a = again
+        moves.append(AxisMove(jn, targets[jn], v, a, delay))
+    return tuple(moves)
+
+
+def _deviation(traj: Trajectory, skipped: list[tuple[int, Point]], t0: float,
+               previous: dict[str, float], moves: tuple[AxisMove, ...],
+               limits: dict[str, JointLimits], tol: dict[str, float], min_segment_s: float,
+               end_point: int) -> tuple[tuple[str, float], ...]:
+    """How far the segment's plan passes from each point merged into it, per joint; a
+    TrajectoryError where that is beyond the joint's path tolerance."""
+    if not skipped:
+        return ()
+    by_joint = {m.joint: m for m in moves}
+    worst = {}
+    for k, point in skipped:
+        for joint, want in zip(traj.joints, point.positions_steps):
+            m = by_joint.get(joint)
+            at = previous[joint] if m is None else along(
+                previous[joint], m.target_steps, m.velocity_steps_s, m.acceleration_steps_s2,
+                point.time_s - t0 - m.start_delay_s)
+            err = abs(at - want)
+            worst[joint] = max(worst.get(joint, 0.0), err)
+            if tol.get(joint, 0.0) > 0 and err > tol[joint]:
+                lim = limits[joint]
+                u = lim.steps_per_unit
+                raise TrajectoryError(
+                    f'{joint}: point {k} ({point.time_s:g} s) cannot be followed within the '
+                    f'path tolerance {tol[joint] / u:.4g} {lim.unit}: the bus needs segments of '
+                    f'at least {min_segment_s:.3g} s, and the segment from {t0:g} s to point '
+                    f'{end_point} passes {err / u:.4g} {lim.unit} from it')
+    return tuple(worst.items())
+
+
+def along(p0: float, p1: float, v: float, a: float, tau: float) -> float:
+    """Position tau into a symmetric trapezoid from p0 to p1 with cruise v and ramps a (inf:
+    start-stop); p1 once it has arrived."""
+    d = abs(p1 - p0)
+    if d == 0 or v <= 0 or a <= 0:
+        return p1
+    sign = 1.0 if p1 > p0 else -1.0
+    t_ramp = 0.0 if math.isinf(a) else v / a
+    total = d / v + t_ramp
+    if tau <= 0:
+        return p0
+    if tau >= total:
+        return p1
+    if t_ramp == 0.0:
+        s = v * tau
+    elif tau < t_ramp:
+        s = 0.5 * a * tau * tau
+    elif tau < total - t_ramp:
+        s = 0.5 * a * t_ramp * t_ramp + v * (tau - t_ramp)
+    else:
+        s = d - 0.5 * a * (total - tau) ** 2
+    return p0 + sign * min(s, d)
+
+
+def along_velocity(p0: float, p1: float, v: float, a: float, tau: float) -> float:
+    """Velocity tau into the trapezoid of `along` (signed, steps/s)."""
+    d = abs(p1 - p0)
+    if d == 0 or v <= 0 or a <= 0 or tau <= 0:
+        return 0.0
+    sign = 1.0 if p1 > p0 else -1.0
+    t_ramp = 0.0 if math.isinf(a) else v / a
+    total = d / v + t_ramp
+    if tau >= total:
+        return 0.0
+    if t_ramp == 0.0:
+        return sign * v
+    if tau < t_ramp:
+        return sign * a * tau
+    if tau < total - t_ramp:
+        return sign * v
+    return sign * a * (total - tau)
 
 
 def sample(traj: Trajectory, start_steps: dict[str, float], t_s: float) -> dict[str, float]:

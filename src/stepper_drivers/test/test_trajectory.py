@@ -124,3 +124,74 @@ def test_the_plan_leaves_acceleration_headroom_when_the_segment_allows():
     assert m.acceleration_steps_s2 == pytest.approx(0.7 * 20000.0)
     assert profile_distance(m.velocity_steps_s, m.acceleration_steps_s2, 1.0) == \
         pytest.approx(1000)
+
+
+def quintic(length_steps, duration_s, dt_s, joints=2):
+    """A straight line in joint space with quintic timing (rest to rest), a point every dt_s, as
+    a planner's time parameterisation gives it: tiny segments at both ends."""
+    n = int(round(duration_s / dt_s))
+    times, positions = [], []
+    for k in range(1, n + 1):
+        s = k / n
+        x = length_steps * (10 * s ** 3 - 15 * s ** 4 + 6 * s ** 5)
+        times.append(k * dt_s)
+        positions.append([x * (1 - 0.5 * j) for j in range(joints)])
+    return build(['a', 'b'][:joints], times, positions, known=['a', 'b'])
+
+
+def test_dense_points_merge_into_segments_as_long_as_the_bus_needs():
+    traj = quintic(2000, 3.0, 0.05)
+    segs = plan(traj, {'a': 0.0, 'b': 0.0}, {'a': LIM, 'b': LIM}, min_segment_s=0.3)
+    assert all(s.end_s - s.start_s >= 0.3 - 1e-9 for s in segs)
+    assert segs[-1].end_s == pytest.approx(3.0) and segs[-1].point == len(traj.points) - 1
+    assert sum(s.merged for s in segs) + len(segs) == len(traj.points)
+    for s in segs:                       # every segment ends on a point of the trajectory
+        assert s.end_s == pytest.approx(traj.points[s.point].time_s)
+        assert {m.joint: m.target_steps for m in s.moves} == \
+            dict(zip(traj.joints, traj.points[s.point].positions_steps))
+    # without a bus time nothing is merged that the joints can take ...
+    stiff = JointLimits(-1e6, 1e6, 1e5, 1e7)
+    assert len(plan(traj, {'a': 0.0, 'b': 0.0}, {'a': stiff, 'b': stiff})) == len(traj.points)
+    # ... and what they cannot (stop and go at 1250 steps/s in 50 ms) is merged until they can
+    segs = plan(traj, {'a': 0.0, 'b': 0.0}, {'a': LIM, 'b': LIM})
+    assert 1 < len(segs) < len(traj.points)
+
+
+def test_a_segment_too_steep_for_the_joint_is_merged_with_the_next_not_refused():
+    # 6.5 steps in 50 ms as a triangle need 1.06e4 steps/s^2 against 1e4: two points (100 ms)
+    # need a quarter of that
+    lim = JointLimits(-1e6, 1e6, 1600.0, 10_000.0)
+    traj = build(['a'], [0.05, 0.1, 0.15, 0.2], [[6.5], [13], [19.5], [26]], known=['a'])
+    segs = plan(traj, {'a': 0.0}, {'a': lim})
+    assert [s.point for s in segs] == [1, 3] and all(s.merged == 1 for s in segs)
+    # what no merge can make: the last point too far for the time left
+    far = build(['a'], [0.05, 0.1], [[6.5], [400]], known=['a'])
+    with pytest.raises(TrajectoryError, match=r'a: segment to point 0 \(0 s to 0.05 s\) needs '
+                                              r'an acceleration'):
+        plan(far, {'a': 0.0}, {'a': lim})
+
+
+def test_merging_beyond_the_path_tolerance_is_refused_naming_joint_point_and_tolerance():
+    # a corner at 0.2 s: merged into one 0.4 s segment, the plan passes 50 steps from it
+    traj = build(['a', 'b'], [0.2, 0.4], [[100, 0], [100, 100]], known=['a', 'b'])
+    lims = {'a': LIM, 'b': LIM}
+    segs = plan(traj, {'a': 0.0, 'b': 0.0}, lims, min_segment_s=0.3,
+                path_tolerance_steps={'a': 60.0, 'b': 60.0})
+    (seg,) = segs
+    dev = dict(seg.deviation_steps)
+    assert 40 <= dev['a'] <= 60 and 40 <= dev['b'] <= 60
+    with pytest.raises(TrajectoryError, match=r'(a|b): point 0 \(0.2 s\) cannot be followed '
+                                              r'within the path tolerance 0.03 rad: the bus '
+                                              r'needs segments of at least 0.3 s'):
+        plan(traj, {'a': 0.0, 'b': 0.0}, lims, min_segment_s=0.3,
+             path_tolerance_steps={'a': 30.0, 'b': 30.0})
+
+
+def test_a_segment_slower_than_the_drive_can_run_goes_at_its_least_speed():
+    slow = JointLimits(-1e6, 1e6, 4000.0, 20000.0, min_velocity_steps_s=32.0)
+    (seg,) = plan(build(['a'], [1.0], [[10]], known=['a']), {'a': 0.0}, {'a': slow})
+    (m,) = seg.moves
+    assert m.velocity_steps_s == pytest.approx(32.0)
+    assert m.acceleration_steps_s2 <= 20000.0
+    # it arrives early and stays: never past the target
+    assert profile_distance(m.velocity_steps_s, m.acceleration_steps_s2, 1.0) >= 10

@@ -50,7 +50,7 @@ from typing import Any, Callable, Mapping
 from ..drive import (Bus, Drive, DriveError, DriveState, Homing, HomingState, IdentityError,
                      LinkError, Motion, ParamSpec, State, Steps, Vendor, register_type)
 from .. import param_rules
-from ..protocol.modbus_rtu import ModbusRtuBus
+from ..protocol.modbus_rtu import BITS_PER_CHAR, ModbusRtuBus
 from . import rd4_map as rm
 from .rd4_map import HR, IR
 
@@ -59,6 +59,11 @@ logger = logging.getLogger(__name__)
 HOMING_METHOD_PRESET = 35      # CiA 402 method 35 "current position is home": what a preset is
 MIN_WATCHDOG_POLL_HZ = 5.0     # spec §9B: poll period <= 200 ms keeps the 1 s watchdog fed
 STEP_S = 0.0                   # between the transactions of one operation (drive.py contract)
+# A move_to on the line (move_time_s): FC04 Alarms/Status check, Work speed, Target position and
+# Start (Acceleration/Deceleration and a Control Word 0 only when they change); about 22
+# characters a request and its answer, each after t3.5 of silence (§7.3.1).
+MOVE_TRANSACTIONS = 4
+MOVE_CHARS_PER_TRANSACTION = 22
 _RAW_TYPES = ('u16', 'i16', 'u32', 'i32')
 
 
@@ -93,6 +98,12 @@ class Rd4Drive(Drive):
         self._last_position: tuple[int, float] | None = None
         self._velocity = 0.0
         self._notes: set[str] = set()
+
+    min_velocity_steps_s = float(rm.MIN_SPEED_PPS)          # §6.4 Min. speed
+
+    def move_time_s(self) -> float:
+        char_s = BITS_PER_CHAR / self.rtu.baudrate
+        return MOVE_TRANSACTIONS * (MOVE_CHARS_PER_TRANSACTION * char_s + 2 * self.rtu.t35_s)
 
     # ---------------------------------------------------------------------- bus helpers
     def _read_input(self, address: int, count: int) -> list[int]:

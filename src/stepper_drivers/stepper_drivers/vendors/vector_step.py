@@ -831,6 +831,11 @@ class VectorStepDrive(Drive):
         if self._homing == HomingState.RUNNING:
             self._homing = HomingState.IDLE
 
+    @property
+    def min_velocity_steps_s(self) -> float:
+        """0x6081 Profile velocity is in 0.01 rev/s (vm.rps100_from_hz): one unit."""
+        return self.steps_per_rev / 100.0
+
     # ------------------------------------------------------------------ interpolated position
     @property
     def interpolation_period_s(self) -> float | None:

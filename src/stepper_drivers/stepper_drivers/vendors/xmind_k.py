@@ -45,6 +45,10 @@ RUN_CELL = 229           # RAM: free runs, and the counter reset after the zero 
 HOMING_METHODS = {3: 'zero search (instruction 03) in + direction, then counter reset',
                   -3: 'zero search (instruction 03) in - direction, then counter reset',
                   60: 'counter reset at the current position (RA)'}
+# A move on the line (move_time_s): the FA and power-cycle-flag check, WN 228 and PS 228, about 20
+# characters a string and its answer, each answered after the turnaround and RD (§3).
+MOVE_STRINGS = 4
+MOVE_CHARS_PER_STRING = 20
 RAMPED_MIN_HZ = min(xk.TABLE2_HZ.values())          # 3000 Hz: below, only unramped runs (§4.1.6)
 RAMPED_MAX_HZ = max(xk.HR_RAMPED_X100) * 100        # 24000 Hz (§4.1.2)
 FAULT_TEXT = ('FA output OFF: drive blocked by a protection (§2.2.4); X-MIND K has no fault '
@@ -52,6 +56,9 @@ FAULT_TEXT = ('FA output OFF: drive blocked by a protection (§2.2.4); X-MIND K 
 NO_FAULT_RESET = 'X-MIND K has no fault reset command; clear the cause and power-cycle'
 STOP_WAIT_S = 3.0        # bound on waiting for a stopping drive to answer again
 STOP_POLL_S = 0.02       # rate limit of that wait (nothing to wait on but the drive's answer)
+# A new target for an index run that ends within this waits for its end (a trajectory's next
+# segment), instead of stopping it and starting again: the drive takes no command while busy (§3).
+QUEUE_BEHIND_S = 0.5
 BUSY_POLL_SLACK_S = 0.03  # a drive that may be busy: a late answer is taken at the next poll
 
 
@@ -227,6 +234,14 @@ class XmindKDrive(drive.Drive):
         self.connects = 0                      # successful connects of this object
         self.may_end_at_zero = False           # a job lost with the link could end at 0
         bus.addresses[name] = self.number     # (the node also builds drives only to check)
+
+    min_velocity_steps_s = 1.0            # Table 4: 0001..4800 Hz
+
+    def move_time_s(self) -> float:
+        rd_ms = self.rd_ms if self.rd_ms is not None else int(self.params['answer_delay_ms'])
+        rd_s = (rd_ms if rd_ms >= 0 else xk.RD_DEFAULT_MS) / 1000.0
+        return (MOVE_STRINGS * (MOVE_CHARS_PER_STRING * self.bus.char_s + xk.TURNAROUND_S + rd_s)
+                + xk.TURNAROUND_WN_S)
 
     # ---------------------------------------------------------------------------- transactions
     def _ask(self, code: str, *args, tries: int | None = None, retry_silence: bool = True,
@@ -673,12 +688,40 @@ class XmindKDrive(drive.Drive):
             return           # the same target again (a streaming command): nothing to send
         self.epoch += 1
         self.last_target = target
+        if job is not None and job.kind == 'move' and not job.stopping and self.pending is None \
+                and job.estimate.end_s - time.monotonic() <= QUEUE_BEHIND_S:
+            epoch = self.epoch
+            ended = yield from self._await_index_end(job, epoch)
+            if self.epoch != epoch:
+                return                       # a stop or a newer command came meanwhile
+            if ended and self.pending is None:
+                yield from self._start_move(target, motion, epoch)
+                return
+            job = self.job                   # still busy well past its end: stop, restart
         if job is not None or self.pending is not None:
             self.pending = ('move', target, motion)
             if job is not None and not job.stopping:
                 self._stop_job(quick=False)      # stop, then rewrite and restart (read_state)
             return
         yield from self._start_move(target, motion, self.epoch)
+
+    def _await_index_end(self, job: Job, epoch: int) -> drive.Steps[bool]:
+        """Until `job`, an index run about to end, has ended (QA answers again, §3): True; False
+        when a stop or another command came meanwhile, or it is still busy QUEUE_BEHIND_S past
+        its estimated end."""
+        while self.job is job:
+            now = time.monotonic()
+            if now > job.estimate.end_s + QUEUE_BEHIND_S:
+                return False
+            yield max(job.estimate.end_s - now, STOP_POLL_S)
+            if self.epoch != epoch:
+                return False
+            if self.job is not job:
+                break
+            answer = self._poll_busy()
+            if answer is not None and answer.code == 'QA':
+                self._job_ended(answer.args[0])
+        return self.epoch == epoch and self.job is None
 
     def _start_move(self, target: int, motion: Motion, epoch: int, checked: bool = False
                     ) -> drive.Steps[None]:

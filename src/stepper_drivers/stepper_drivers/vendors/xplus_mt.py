@@ -66,6 +66,7 @@ class XplusMtDrive(Drive):
     """One X-PLUS MT on a Modbus TCP connection (unit id = parameter `unit_id`)."""
 
     start_stop_steps_s = float(xm.START_STOP_MAX_HZ)     # §13 "Motion Profiles"
+    min_velocity_steps_s = 1.0        # PROFILE_VELOCITY (1044) in whole Hz, 0 refused
 
     def __init__(self, bus: Bus, name: str, params: Mapping[str, Any]):
         params = VENDOR.with_defaults(params)

@@ -1,0 +1,336 @@
+"""control_msgs/action/FollowJointTrajectory on every vendor node, as MoveIt sends it.
+
+Each vendor's simulator and node run as separate processes with the shipped config files (RD4
+at 19200 baud and X-MIND K at 9600 with the simulators' line timing on, the Vector Step at its
+default SYNC of 0.1 s, so in profile position); the client is rclpy's ActionClient of the
+control_msgs type, as moveit_simple_controller_manager uses it. Trajectories are MoveIt-like: a
+straight line in the joint space of two joints with quintic timing (rest to rest), a point every
+0.1 s or 0.05 s with positions, velocities and accelerations, header.stamp zero (start now).
+MoveIt cancels a goal not done within 1.2 x its duration + 0.5 s (its defaults): that is the
+bound here.
+"""
+
+import math
+import time
+
+from action_msgs.msg import GoalStatus
+from builtin_interfaces.msg import Duration, Time
+from control_msgs.action import FollowJointTrajectory
+from control_msgs.msg import JointComponentTolerance, JointTolerance
+import pytest
+from rosharness import MIDDLEWARE_S, Procs, RosClient, Track, TrajectoryGoal as Client
+from std_srvs.srv import Trigger
+from test_rd4_ros import Bench as Rd4Bench
+from test_vector_step_ros import Rig as VectorRig
+from test_xmind_k_ros import Bench as XmindBench
+from test_xplus_mt_ros import Bench as XplusBench
+from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint, MultiDOFJointTrajectory
+
+# MoveIt's trajectory_execution defaults
+EXECUTION_SCALING = 1.2
+EXECUTION_MARGIN_S = 0.5
+Result = FollowJointTrajectory.Result
+
+
+def duration(t):
+    sec = int(math.floor(t))
+    return Duration(sec=sec, nanosec=int(round((t - sec) * 1e9)))
+
+
+def quintic(joints, start, end, duration_s, dt_s):
+    """MoveIt-like: a straight line from `start` to `end` (rad) with quintic timing, a point
+    every dt_s with positions, velocities and accelerations."""
+    n = int(round(duration_s / dt_s))
+    msg = JointTrajectory(joint_names=list(joints))
+    for k in range(1, n + 1):
+        s, T = k / n, duration_s
+        f = 10 * s ** 3 - 15 * s ** 4 + 6 * s ** 5
+        df = (30 * s ** 2 - 60 * s ** 3 + 30 * s ** 4) / T
+        ddf = (60 * s - 180 * s ** 2 + 120 * s ** 3) / T ** 2
+        msg.points.append(JointTrajectoryPoint(
+            positions=[a + f * (b - a) for a, b in zip(start, end)],
+            velocities=[df * (b - a) for a, b in zip(start, end)],
+            accelerations=[ddf * (b - a) for a, b in zip(start, end)],
+            time_from_start=duration(k * dt_s)))
+    return msg
+
+
+# ------------------------------------------------------------------------- the four benches
+class XplusShipped(XplusBench):
+    pass
+
+
+class Rd4Shipped(Rd4Bench):
+    """Two RD4 on one 19200-baud line with line timing, polled at config/rd4.yaml's 10 Hz."""
+
+    node_extra_args = ('-p', 'timeout_s:=0.3')   # the simulator shares 2 busy cores
+
+    def sim_args(self):
+        return super().sim_args() + ['-p', 'line_timing:=true']
+
+
+class XmindShipped(XmindBench):
+    """Three X-MIND K on one 9600-baud line with line timing, config/xmind_k.yaml's 5 Hz."""
+
+    node_extra_args = ('-p', 'timeout_s:=0.25')
+
+    def __init__(self, procs, ros, tmp_path):
+        super().__init__(procs, ros, tmp_path, line_timing=True)
+
+
+class VectorShipped(VectorRig):
+    """Two Vector Steps at config/vector_step.yaml's SYNC of 0.1 s: profile position."""
+
+    first_sim_args = ()
+
+
+# vendor: (bench, joints, steps per rad, poll period [s], one transaction [s])
+VENDORS = {
+    'xplus_mt': (XplusShipped, ('xplus_joint1', 'xplus_joint2'), 12800 / (2 * math.pi),
+                 1 / 50.0, 0.005),
+    'rd4': (Rd4Shipped, ('rd4_joint1', 'rd4_joint2'), 1024 / (2 * math.pi), 1 / 10.0, 0.025),
+    'xmind_k': (XmindShipped, ('xmind_joint1', 'xmind_joint2'), 2000 / (2 * math.pi),
+                1 / 5.0, 0.06),
+    'vector_step': (VectorShipped, ('vector_joint1', 'vector_joint2'), 3200 / (2 * math.pi),
+                    1 / 50.0, 0.005),
+}
+
+
+class Setup:
+    def __init__(self, vendor, tmp_path):
+        cls, self.joints, self.steps_per_rad, self.poll_s, self.transaction_s = VENDORS[vendor]
+        self.vendor = vendor
+        if vendor == 'vector_step':
+            self.bench = cls(tmp_path)
+            self._close = self.bench.close
+        else:
+            self.procs, self.ros = Procs(tmp_path), RosClient(f'{vendor}_fjt_test')
+            try:
+                self.bench = cls(self.procs, self.ros, tmp_path)
+            except BaseException:
+                self.close_procs()
+                raise
+            self._close = self.close_procs
+        for d in ('axis1', 'axis2'):
+            self.bench.enable(d)
+
+    def close_procs(self):
+        self.procs.kill_all()
+        self.ros.close()
+
+    def close(self):
+        self._close()
+
+    def positions(self):
+        """The joints' positions from a fresh /joint_states [rad]."""
+        js = self.bench.ros.wait_msg('/joint_states', lambda m: set(self.joints) <= set(m.name))
+        return [js.position[list(js.name).index(j)] for j in self.joints]
+
+    def true_rad(self, drive):
+        return self.bench.fresh_true_steps(drive) / self.steps_per_rad
+
+
+@pytest.fixture(scope='module', params=list(VENDORS))
+def setup(request, tmp_path_factory):
+    s = Setup(request.param, tmp_path_factory.mktemp(request.param))
+    yield s
+    s.close()
+
+
+def still(setup):
+    for d in ('axis1', 'axis2'):
+        setup.bench.status(d, lambda m: not m.moving, 10.0, f'{d} at rest')
+
+
+@pytest.mark.parametrize('dt_s', [0.1, 0.05])
+def test_a_dense_trajectory_finishes_within_moveits_limit_and_the_path_tolerance(setup, dt_s):
+    still(setup)
+    start = setup.positions()
+    end = [start[0] + (2.0 if start[0] < 1.0 else -2.0),
+           start[1] + (1.0 if start[1] < 0.5 else -1.0)]            # 2.24 rad in joint space
+    duration_s = 3.0
+    goal = FollowJointTrajectory.Goal(trajectory=quintic(setup.joints, start, end, duration_s,
+                                                         dt_s))
+    # The path tolerance from the settings: the node checks each polled position against its
+    # plan at the time the position was true; what it cannot know is when a move really
+    # reached its drive on a shared line (a poll or another drive's transactions may go
+    # first): up to a poll period and a transaction, at the plan's top speed (point-to-point
+    # segments, at most twice the trajectory's 1.875 x 2 rad / 3 s).
+    top_rad_s = 2 * 1.875 * 2.0 / duration_s
+    path_rad = top_rad_s * (setup.poll_s + setup.transaction_s)
+    goal.path_tolerance = [JointTolerance(name=j, position=path_rad) for j in setup.joints]
+    c = Client(setup.bench, goal)
+    result = c.result(EXECUTION_SCALING * duration_s + EXECUTION_MARGIN_S + 5.0)
+    took = c.result_t - c.sent_t
+    assert c.status == GoalStatus.STATUS_SUCCEEDED and result.error_code == Result.SUCCESSFUL, \
+        result.error_string
+    assert took <= EXECUTION_SCALING * duration_s + EXECUTION_MARGIN_S, took
+    for d, want in zip(('axis1', 'axis2'), end):
+        assert setup.true_rad(d) == pytest.approx(want, abs=1.5 / setup.steps_per_rad)
+    # the feedback: every joint named, desired - actual = error, within the path tolerance
+    assert c.feedback and list(c.feedback[-1].joint_names) == list(setup.joints)
+    for f in c.feedback:
+        for k in range(2):
+            assert f.error.positions[k] == pytest.approx(
+                f.desired.positions[k] - f.actual.positions[k], abs=1e-9)
+            assert abs(f.error.positions[k]) <= path_rad
+        assert not f.multi_dof_joint_names
+
+
+def test_goals_that_cannot_be_taken_are_refused_naming_why_and_nothing_moves(setup):
+    still(setup)
+    before = setup.positions()
+    j1, j2 = setup.joints
+    one = quintic(setup.joints, before, [before[0] + 1.0, before[1]], 1.0, 0.1)
+    cases = []
+    g = FollowJointTrajectory.Goal(trajectory=quintic(['elbow', j2], [0, 0], [1, 1], 1.0, 0.1))
+    cases.append((g, Result.INVALID_JOINTS, "['elbow'] are not driven by this node"))
+    g = FollowJointTrajectory.Goal(trajectory=one, multi_dof_trajectory=MultiDOFJointTrajectory(
+        joint_names=['base']))
+    cases.append((g, Result.INVALID_GOAL, 'multi_dof_trajectory'))
+    g = FollowJointTrajectory.Goal(trajectory=one, component_path_tolerance=[
+        JointComponentTolerance(joint_name='base', component=4, position=0.1)])
+    cases.append((g, Result.INVALID_GOAL, 'component_path_tolerance'))
+    g = FollowJointTrajectory.Goal(trajectory=one, path_tolerance=[
+        JointTolerance(name=j1, acceleration=1.0)])
+    cases.append((g, Result.INVALID_GOAL, f'path_tolerance of {j1}: acceleration 1'))
+    g = FollowJointTrajectory.Goal(trajectory=one, goal_tolerance=[
+        JointTolerance(name=j1, position=-0.5)])
+    cases.append((g, Result.INVALID_GOAL, f'goal_tolerance of {j1}: position -0.5 is not a '
+                                          'tolerance'))
+    g = FollowJointTrajectory.Goal(trajectory=one, goal_tolerance=[
+        JointTolerance(name='wrist', position=0.1)])
+    cases.append((g, Result.INVALID_JOINTS, "goal_tolerance: joint 'wrist' is not driven"))
+    old = FollowJointTrajectory.Goal(trajectory=quintic(setup.joints, before, before, 1.0, 0.1))
+    old.trajectory.header.stamp = Time(sec=1)                       # 1970: ended long ago
+    cases.append((old, Result.OLD_HEADER_TIMESTAMP, 'the trajectory ended'))
+    for goal, code, text in cases:
+        c = Client(setup.bench, goal)
+        result = c.result(5.0)
+        assert c.status == GoalStatus.STATUS_ABORTED and result.error_code == code, \
+            (code, result.error_string)
+        assert text in result.error_string, result.error_string
+    for d in ('axis1', 'axis2'):
+        assert not setup.bench.status(d).moving
+    assert setup.positions() == pytest.approx(before, abs=1.5 / setup.steps_per_rad)
+
+
+def test_a_tolerance_of_minus_one_is_not_checked(setup):
+    """A stop on one axis leaves it short of the goal: with the default goal tolerance the
+    goal fails, with -1 it succeeds once the joints stand (goal velocity still checked)."""
+    still(setup)
+    start = setup.positions()
+    j1, _ = setup.joints
+    outcomes = []
+    for position_tol in (0.0, -1.0):
+        target = [start[0] + 3.0 * (1 if not outcomes else -1), start[1]]
+        goal = FollowJointTrajectory.Goal(trajectory=JointTrajectory(
+            joint_names=[j1], points=[JointTrajectoryPoint(positions=[target[0]],
+                                                           time_from_start=duration(2.0))]))
+        goal.goal_tolerance = [JointTolerance(name=j1, position=position_tol)]
+        c = Client(setup.bench, goal)
+        setup.bench.status('axis1', lambda m: m.moving, 5.0, 'axis1 following')
+        r = setup.bench.call('axis1', 'stop', Trigger.Request(), Trigger)
+        assert r.success, r.message
+        outcomes.append((c.result(10.0), c.status))
+        setup.bench.status('axis1', lambda m: not m.moving, 5.0, 'axis1 stopped')
+        start = setup.positions()
+        assert abs(start[0] - target[0]) > 0.1         # it did stop short
+    (r0, s0), (r1, s1) = outcomes
+    assert s0 == GoalStatus.STATUS_ABORTED and r0.error_code == Result.GOAL_TOLERANCE_VIOLATED
+    assert f'{j1}: ' in r0.error_string and 'from the goal' in r0.error_string
+    assert s1 == GoalStatus.STATUS_SUCCEEDED and r1.error_code == Result.SUCCESSFUL, \
+        r1.error_string
+
+
+def test_cancel_stops_the_joints(setup):
+    still(setup)
+    start = setup.positions()
+    target = [start[0] + 6.0 * (1 if start[0] < 1.0 else -1), start[1] + 3.0 * (
+        1 if start[1] < 0.5 else -1)]
+    c = Client(setup.bench, FollowJointTrajectory.Goal(trajectory=quintic(
+        setup.joints, start, target, 4.0, 0.1)))
+    for d in ('axis1', 'axis2'):
+        setup.bench.status(d, lambda m: m.moving, 5.0, f'{d} following')
+    time.sleep(0.5)                                    # well into the motion
+    c.cancel()
+    c.result(5.0)
+    assert c.status == GoalStatus.STATUS_CANCELED
+    # stopped: within two polls, a transaction in flight and the ramp from at most max speed
+    for d in ('axis1', 'axis2'):
+        setup.bench.status(d, lambda m: not m.moving, 2.0, f'{d} stopped by the cancel')
+    time.sleep(2 * setup.poll_s)
+    now = setup.positions()
+    assert all(abs(n - t) > 0.5 for n, t in zip(now, target)), (now, target)
+
+
+# ------------------------------------------------------------------ one trajectory, two nodes
+def crossing(track, after_t, target):
+    """When the true position reached or passed `target` (a whole step: linear between the two
+    samples around it), the first time after `after_t`; None if it never did."""
+    with track.lock:
+        samples = [(t, x) for t, x in track.samples if t >= after_t]
+    for (t0, x0), (t1, x1) in zip(samples, samples[1:]):
+        if abs(x0 - target) <= 0.5:
+            return t0
+        if (x0 - target) * (x1 - target) <= 0:
+            return t0 + (t1 - t0) * (target - x0) / (x1 - x0)
+    return None
+
+
+def test_two_nodes_given_the_parts_of_one_trajectory_start_and_arrive_together(
+        procs, ros, tmp_path, request):
+    """As MoveIt splits a planning group over two controllers: an X-PLUS MT node (Modbus TCP)
+    and an RD4 node (19200-baud line with line timing), each sent its joints' part with the
+    same header.stamp. Every axis arrives at every point within one poll period of each node
+    plus one line transaction of the other axes (and the measurement's 20 Hz sample)."""
+    (xplus_dir := tmp_path / 'xplus').mkdir()
+    (rd4_dir := tmp_path / 'rd4').mkdir()
+    xplus = XplusShipped(procs, ros, xplus_dir)
+    rd4_procs = Procs(rd4_dir)                     # its logs apart from the X-PLUS MT's
+    request.addfinalizer(rd4_procs.kill_all)
+    rd4 = Rd4Shipped(rd4_procs, ros, rd4_dir)
+    for b in (xplus, rd4):
+        for d in ('axis1', 'axis2'):
+            b.enable(d)
+    parts = {xplus: (VENDORS['xplus_mt'], ('xplus_joint1', 'xplus_joint2')),
+             rd4: (VENDORS['rd4'], ('rd4_joint1', 'rd4_joint2'))}
+    # points further apart than the RD4 line's shortest segment (3 x 2 moves of about 0.1 s),
+    # so that neither node merges any: each point is a point of both plans
+    times_s = [0.8, 1.6, 2.4, 3.2]
+    # every joint one way only: each point is passed once, its time read between two samples
+    rad = {'xplus_joint1': [1.0, 2.0, 2.5, 3.5], 'xplus_joint2': [-0.5, -1.0, -1.5, -1.75],
+           'rd4_joint1': [1.0, 2.0, 2.5, 3.5], 'rd4_joint2': [0.5, 1.0, 1.5, 1.75]}
+    tracks = {(b, d): Track(ros, b.true_topic(d)) for b in parts for d in ('axis1', 'axis2')}
+    # one stamp, a little ahead, as MoveIt gives both parts
+    stamp_ros = ros.node.get_clock().now().nanoseconds * 1e-9 + 0.8
+    start_t = time.monotonic() + 0.8
+    clients = []
+    for b, (_, joints) in parts.items():
+        msg = JointTrajectory(joint_names=list(joints))
+        msg.header.stamp = Time(sec=int(stamp_ros), nanosec=int((stamp_ros % 1) * 1e9))
+        for k, t in enumerate(times_s):
+            msg.points.append(JointTrajectoryPoint(positions=[rad[j][k] for j in joints],
+                                                   time_from_start=duration(t)))
+        clients.append(Client(b, FollowJointTrajectory.Goal(trajectory=msg)))
+    for c in clients:
+        result = c.result(10.0)
+        assert result.error_code == Result.SUCCESSFUL, result.error_string
+    due = [start_t + t for t in times_s]
+    for (b, d), track in tracks.items():            # the true positions' last samples are in
+        track.wait_still(0.2, 5.0, f'{b.vendor} {d} at rest')
+    hits = {}
+    for b, ((_, _, steps_per_rad, _, _), joints) in parts.items():
+        for d, j in zip(('axis1', 'axis2'), joints):
+            hits[j] = [crossing(tracks[(b, d)], due[k - 1] - 0.2 if k else 0.0,
+                                round(rad[j][k] * steps_per_rad)) for k in range(len(times_s))]
+    # a poll period of each node, one RD4 transaction (the second axis's move goes out after
+    # the first's on the line), the 20 Hz samples' interpolation and the middleware's hops
+    bound = 1 / 50.0 + 1 / 10.0 + 0.025 + Track.SAMPLE_S + MIDDLEWARE_S
+    for k in range(len(times_s)):
+        at = {j: hits[j][k] for j in hits}
+        assert all(h is not None for h in at.values()), (k, at)
+        spread = max(at.values()) - min(at.values())
+        assert spread <= bound, (k, spread, {j: h - due[k] for j, h in at.items()})
+        for j, h in at.items():            # at the point's time, within the same bound
+            assert abs(h - due[k]) <= bound, (k, j, h - due[k])
