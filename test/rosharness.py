@@ -167,6 +167,23 @@ class DriveBench:
             from std_srvs.srv import Trigger as srv
         return self.ros.call(srv, f'{self.node_ns}/{drive}/{name}', request, timeout_s)
 
+    def move_to(self, drive, position, timeout_s=20.0):
+        """The drive's ~/<drive>/move_to action (stepper_drivers_msgs/action/MoveTo) to
+        `position` [joint units]; its result."""
+        from rclpy.action import ActionClient
+        from stepper_drivers_msgs.action import MoveTo
+        client = ActionClient(self.ros.node, MoveTo, f'{self.node_ns}/{drive}/move_to')
+        assert client.wait_for_server(timeout_sec=10)
+        sent, got = threading.Event(), threading.Event()
+        fut = self.ros.in_spin(client.send_goal_async, MoveTo.Goal(position=float(position)))
+        fut.add_done_callback(lambda _f: sent.set())
+        assert sent.wait(10) and fut.result().accepted
+        res = self.ros.in_spin(fut.result().get_result_async)
+        res.add_done_callback(lambda _f: got.set())
+        assert got.wait(timeout_s), f'{drive}: no move_to result within {timeout_s} s'
+        self.ros.in_spin(client.destroy)
+        return res.result().result
+
     def enable(self, drive, on=True):
         from std_srvs.srv import SetBool
         r = self.call(drive, 'enable', SetBool.Request(data=on), SetBool)

@@ -33,7 +33,8 @@ class Rig(DriveBench):
     first_sim_args = ('-p', 'drives.axis2.power_stage_blocked:=true')
     # The simulator is a Python process on a shared 2-core machine: an SDO answer can come later
     # than the 0.5 s of config/vector_step.yaml, and no test here is about that.
-    node_extra_args = ('-p', 'timeout_s:=1.5')
+    node_extra_args = ('-p', 'timeout_s:=1.5',
+                       '-p', 'drives.axis1.allow_raw_write:=true')   # shipped: refused
 
     def __init__(self, log_dir, node_args=()):
         self.storage = log_dir / 'eeprom'
@@ -297,3 +298,26 @@ def test_bad_parameter_fails_start_up_with_one_line(procs, tmp_path):
                                timeout_s=30.0)
     assert out[-1] == ('vector_step_node: parameter drives.axis2.node_id: 300 is out of range '
                        '(allowed: an integer from 1 to 127)'), out
+
+
+class SlowTpdoRig(Rig):
+    """TxPDO2..4 50 ms behind TxPDO1, as on a slow or busy bus (at 10-20 kbit/s one TPDO takes
+    about 10 ms, and the frames of drives with lower COB-IDs go first)."""
+
+    first_sim_args = ('-p', 'tpdo_lag_s:=0.05')
+
+
+def test_move_to_decides_on_the_position_after_the_statusword_on_a_slow_bus(tmp_path):
+    """A "target reached" statusword (TxPDO1) before the TxPDO2 with the final position: the
+    move_to result is decided on the drive's real final position, every time."""
+    rig = SlowTpdoRig(tmp_path)
+    try:
+        rig.enable('axis1')
+        start = rig.status('axis1', lambda m: m.enabled).position
+        for k in range(16):
+            target = start + (1.0 if k % 2 == 0 else 0.0) + 0.25 * k
+            r = rig.move_to('axis1', target)
+            assert r.success, (k, r.message)
+            assert r.final_position == pytest.approx(target, abs=1 / STEPS_PER_RAD)
+    finally:
+        rig.close()

@@ -587,22 +587,28 @@ def test_a_velocity_write_whose_reply_is_lost_is_still_watched(procs, ros, tmp_p
     assert still_at - reconnected_at <= bound_s, (still_at - reconnected_at, bound_s)
 
 
-def test_owner_thread_priority_runs_the_bus_owner_on_sched_fifo(procs, ros, tmp_path):
-    """-p owner_thread_priority:=10: one thread of the node, its bus owner (one bus), is on
-    SCHED_FIFO at priority 10, and the node moves a drive as before. Where the machine refuses
-    (no CAP_SYS_NICE, no rtprio limit), the node says so and no thread is."""
-    bench = Bench(procs, ros, tmp_path, node_args=('-p', 'owner_thread_priority:=10'))
+@pytest.mark.parametrize('args, priority', [((), 10), (('-p', 'owner_thread_priority:=0'), 0)])
+def test_owner_thread_priority_runs_the_bus_owner_on_sched_fifo(procs, ros, tmp_path, args,
+                                                                 priority):
+    """By default (owner_thread_priority 10, as ros2_control's controller_manager asks for
+    real-time) one thread of the node, its bus owner (one bus), is on SCHED_FIFO at priority 10,
+    and the node moves a drive as before; 0 turns it off. Where the machine refuses (no
+    CAP_SYS_NICE, no rtprio limit), the node says so in one line naming the parameter and the
+    limits file, and no thread is."""
+    bench = Bench(procs, ros, tmp_path, node_args=args)
     fifo = {}
     for task in (pathlib.Path('/proc') / str(bench.node.pid) / 'task').iterdir():
         fields = (task / 'stat').read_text().rsplit(')', 1)[1].split()   # from field 3 on
         policy, rt_priority = int(fields[41 - 3]), int(fields[40 - 3])
         if policy == os.SCHED_FIFO:
             fifo[task.name] = rt_priority
-    if fifo_allowed(10):
-        assert list(fifo.values()) == [10], fifo
+    if priority and fifo_allowed(priority):
+        assert list(fifo.values()) == [priority], fifo
     else:
         assert not fifo
+    if priority and not fifo_allowed(priority):
         bench.node.wait_line('owner_thread_priority 10: SCHED_FIFO refused', 5.0)
+        assert '/etc/security/limits.conf' in bench.node.output()
     bench.enable('axis1')
     bench.command('axis1', 'position_command', 1.0)
     bench.status('axis1', lambda m: not m.moving and abs(m.position - 1.0) < 1e-3,

@@ -214,6 +214,10 @@ class Drive(abc.ABC):
     # The least speed the drive runs a move at (its velocity resolution or range); a slower
     # trajectory segment runs at this speed and arrives early. 0: any speed.
     min_velocity_steps_s: float = 0.0
+    # How long the last read_state() counts as fresh for a motion command: a driver may then
+    # take "enabled, no alarm" from it instead of reading it on the wire first (the bus owner
+    # sets its poll period here). 0: read it on the wire before every motion.
+    state_fresh_s: float = 0.0
 
     def __init__(self, bus: Bus, name: str, params: Mapping[str, Any]):
         self.bus = bus

@@ -102,6 +102,8 @@ class DriveHandle:
         self.job_error_logged = ''         # the kind of failed command logged last (owner)
         self.status_key: tuple = ()        # what the last published status said (owner thread)
         self.status_due = 0.0              # time.monotonic() of the next status regardless
+        # callers awaiting the publication of a snapshot newer than a change (owner thread)
+        self.publish_waiters: list[concurrent.futures.Future] = []
 
     @property
     def slot(self) -> Slot:
@@ -385,21 +387,25 @@ class DriveNode(Node):
             sup.start()
 
     def publish_states(self, sup: BusSupervisor) -> None:
-        """Owner thread, after each poll cycle of its bus."""
+        """Owner thread, after each poll cycle of its bus. A drive with publish waiters (a
+        service or action that changed it: `published`) has joint_states and its status
+        published now, whatever is due, and then its waiters are answered."""
+        handles = [self.handles[n] for n in sup.slots]
+        waiting = [h for h in handles if h.publish_waiters]
         if not self.context.ok():
+            self._answer_publish_waiters(waiting, False)
             return
         stamp = None
         now = time.monotonic()
-        if self._joint_states_due(sup, now):
+        if self._joint_states_due(sup, now) or waiting:
             stamp = self._stamp()
             self._publish_joint_states(stamp)
-        handles = [self.handles[n] for n in sup.slots]
         # A status goes out when something in it changed, and at status_rate_hz otherwise:
         # at 50 Hz the messages of idle drives cost more CPU than polling them (issue 9).
         counters = None
         for h in handles:
             key = self._status_key(h)
-            if key == h.status_key and now < h.status_due:
+            if key == h.status_key and now < h.status_due and not h.publish_waiters:
                 continue
             if counters is None:
                 counters = sup.bus.counters()
@@ -408,8 +414,17 @@ class DriveNode(Node):
             self.status_pubs[h.name].publish(self._status_msg(h, stamp, counters))
             h.status_key = key
             h.status_due = now + 1.0 / self.bus_params['status_rate_hz']
+        self._answer_publish_waiters(waiting, True)
         if now >= self._diag_due:
             self._publish_diagnostics_due(now)
+
+    @staticmethod
+    def _answer_publish_waiters(handles: list[DriveHandle], published: bool) -> None:
+        for h in handles:
+            waiters, h.publish_waiters = h.publish_waiters, []
+            for fut in waiters:
+                if not fut.done():
+                    fut.set_result(published)
 
     def _publish_diagnostics_due(self, now: float) -> None:
         """/diagnostics from the owner thread that finds it due, not from an executor timer:
@@ -720,6 +735,29 @@ class DriveNode(Node):
             raise Cancelled('the node is shutting down')
         return fresh
 
+    async def published(self, *handles: DriveHandle, timeout_s: float = 2.0) -> bool:
+        """Await the next snapshot of each drive and its publication: /joint_states and the
+        drive's status that carry it have gone out (False: no snapshot within timeout_s, or
+        the link is lost). A service or action that changed a drive answers after this, so a
+        client that reads /joint_states after the answer sees the change."""
+        futs = []
+        for h in handles:
+            fut: concurrent.futures.Future = concurrent.futures.Future()
+
+            def polled(fresh: bool, h=h, fut=fut) -> None:   # owner thread, after h's poll
+                if fresh:
+                    h.publish_waiters.append(fut)            # publish_states answers it
+                elif not fut.done():
+                    fut.set_result(False)
+            h.sup.wait_poll(h.name, timeout_s, polled)
+            futs.append(fut)
+        published = True
+        for h, fut in zip(handles, futs):
+            published = await self._await(fut) and published
+            if not published and h.sup.stopping:
+                raise Cancelled('the node is shutting down')
+        return published
+
     async def _run_job(self, h: DriveHandle, kind: str, fn: Callable, label: str,
                        **kw) -> Any:
         return await self._await(h.sup.submit(h.name, kind, fn, label, hand_over=kind == URGENT,
@@ -745,7 +783,7 @@ class DriveNode(Node):
             else:
                 await self._run_job(h, URGENT, h.drive.disable, 'disable', disarms=True,
                                     motion=False)
-            await self._next_poll(h)
+            await self.published(h)
             return h.state.state.value
         return await self._respond(h, resp, work, lambda st: f'{h.name}: {st}')
 
@@ -753,6 +791,7 @@ class DriveNode(Node):
         async def work():
             self._check_link(h, 'stop', safe=True)
             await self._run_job(h, URGENT, h.drive.stop, 'stop', disarms=True)
+            await self.published(h)
         return await self._respond(h, resp, work,
                                    lambda _: f'{h.name}: stopping with the profile deceleration')
 
@@ -772,6 +811,7 @@ class DriveNode(Node):
         while True:
             st = h.state.homing
             if st == HomingState.ATTAINED:
+                await self.published(h)
                 return (f'{h.name}: homed at {h.position:.6g} ({h.state.position_steps} steps)'
                         + (f'; {note}' if note else ''))
             if st == HomingState.ERROR or h.state.fault:
@@ -818,7 +858,7 @@ class DriveNode(Node):
             self._check_link(h, 'fault_reset')
             remaining = await self._run_job(h, COMMAND, h.drive.fault_reset, 'fault_reset',
                                             motion=False)
-            await self._next_poll(h)
+            await self.published(h)
             if remaining:
                 raise DriveError(f'fault remains: {remaining}')
             return h.state.state.value
@@ -902,6 +942,7 @@ class DriveNode(Node):
                 fb.position, fb.state = h.position, s.state.value
                 fb.distance_remaining = target - h.position
                 goal_handle.publish_feedback(fb)
+            await self.published(h)
             goal_handle.succeed()
             result.success, result.message = True, f'{h.name}: at {h.position:.6g}'
         except (CommandRefused, DriveError) as e:

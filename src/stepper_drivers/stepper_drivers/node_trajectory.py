@@ -260,6 +260,9 @@ class TrajectoryInterface:
             goal_handle.publish_feedback(fb)
             await self._sleep(FEEDBACK_PERIOD_S, run.done)
         outcome = await self.node._await(run.done)
+        # answered once joint_states and the statuses of the joints' drives that show the end
+        # went out: a client (MoveIt's start state of the next plan) reads them after this
+        await self.node.published(*[self._handle(j) for j in run.traj.joints])
         result.error_code, result.error_string = outcome.code, outcome.text
         if outcome.status == 'succeeded':
             goal_handle.succeed()

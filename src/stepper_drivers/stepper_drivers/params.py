@@ -197,10 +197,11 @@ BUS_PARAMS = (
     P('status_rate_hz', 1.0, 'least rate of ~/<drive>/status: it is published at the poll '
       'that sees a change (state, position, velocity, alarms, refusals...) and at least this '
       'often otherwise [Hz]', 0.1, 1000.0, read_only=False),
-    P('owner_thread_priority', 0, 'real-time priority (SCHED_FIFO, 1..99) of the bus owner '
+    P('owner_thread_priority', 10, 'real-time priority (SCHED_FIFO, 1..99) of the bus owner '
       'threads, so that a command reaches the wire without waiting for the scheduler on a '
-      'loaded machine; 0 = the normal scheduler. Needs CAP_SYS_NICE or an rtprio limit '
-      '(limits.conf); refused: a warning, and the normal scheduler', 0, 99),
+      'loaded machine (as ros2_control\'s controller_manager asks for); 0 = the normal '
+      'scheduler. Needs CAP_SYS_NICE or an rtprio limit (/etc/security/limits.conf); refused: '
+      'one warning, and the normal scheduler', 0, 99),
 )
 
 # Per-drive parameters every node has, declared as drives.<name>.<param>.

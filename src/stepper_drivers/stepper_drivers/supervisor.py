@@ -56,6 +56,9 @@ logger = logging.getLogger(__name__)
 
 URGENT, COMMAND, STREAM, MAINTENANCE = 'urgent', 'command', 'stream', 'maintenance'
 CONNECT = 'connect'     # the owner's own connection attempt
+# The refusal of SCHED_FIFO is told once per process (every bus owner of a node asks for it).
+_priority_lock = threading.Lock()
+_priority_refusal_told = False
 # How often a connect that failed with IdentityError is tried before the node gives up on it.
 IDENTITY_ATTEMPTS = 3
 # After this many commands or steps while a poll is overdue, one poll goes first (fairness).
@@ -282,19 +285,27 @@ class BusSupervisor:
         getattr(logger, level)('%s: %s', drive, text)
 
     def _set_priority(self) -> None:
-        """SCHED_FIFO for this thread when asked (owner_thread_priority): the owner then runs as
+        """SCHED_FIFO for this thread (owner_thread_priority, 0: not): the owner then runs as
         soon as a command wakes it, not when the scheduler gets round to it (docs/benchmarks.md:
         the owner's wake-up was most of the command path's tail). A refusal is not an error:
-        the bus works as well, only later on a loaded machine."""
+        the bus works as well, only later on a loaded machine; the first owner of the process
+        that is refused says so, once."""
+        global _priority_refusal_told
         priority = int(self.settings.get('owner_thread_priority', 0))
         if not priority:
             return
         try:
             os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
         except OSError as exc:
-            self.on_event('warning', self.name, f'owner_thread_priority {priority}: SCHED_FIFO '
-                          f'refused ({exc.strerror}; needs CAP_SYS_NICE or an rtprio limit): '
-                          'the bus owner runs on the normal scheduler')
+            with _priority_lock:
+                told, _priority_refusal_told = _priority_refusal_told, True
+            if not told:
+                self.on_event(
+                    'warning', self.name,
+                    f'owner_thread_priority {priority}: SCHED_FIFO refused ({exc.strerror}): '
+                    'the bus owners run on the normal scheduler; allow it with an rtprio limit '
+                    f'of at least {priority} for this user in /etc/security/limits.conf (or '
+                    'CAP_SYS_NICE), or set owner_thread_priority: 0')
 
     def _run(self) -> None:
         self._set_priority()
@@ -591,6 +602,7 @@ class BusSupervisor:
             self._drive_lost(slot, f'unexpected error {exc!r}')
             return
         slot.state = state
+        slot.drive.state_fresh_s = self._period_s()      # (the rate can change at run time)
         # when the position was true (the trajectory feedback compares the plan at that time)
         slot.state_t = self.clock() if state.measured_at_s is None else state.measured_at_s
         slot.polls += 1

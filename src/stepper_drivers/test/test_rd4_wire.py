@@ -624,6 +624,57 @@ def test_motion_and_preset_need_the_unit_enabled_on_the_wire(rig):
         assert not r.unit().motion.moving and round(r.unit().position) == 0
 
 
+def test_a_fresh_poll_lets_the_motion_frames_go_first_a_stale_one_costs_the_check(rig):
+    """Within state_fresh_s of a poll that found no alarm (the bus owner sets its poll period),
+    a motion's first frame is its own; a stale snapshot, or a stop, disable or enable since,
+    costs the FC04 check first."""
+    r = rig(watchdog=False, hold_torque=False)
+    d = r.drives['axis1']
+    complete(d.connect())
+    complete(d.enable())
+    d.state_fresh_s = 0.3
+    complete(d.read_state())
+    r.sent()
+    complete(d.move_to(500, MOTION))
+    assert r.sent() == [f('01 06 00 0D 03 20 CRC'),                     # Work speed first
+                        f('01 10 00 2B 00 02 04 00 00 01 F4 CRC'),      # Target position 500
+                        f('01 06 00 2A 00 C4 A9 91')]                   # Start
+    wait_state(d, lambda s: not s.moving and s.position_steps == 500, what='at 500')
+    r.sent()
+    complete(d.move_to(600, MOTION))                 # (wait_state polled: still fresh)
+    assert r.sent()[0] == f('01 10 00 2B 00 02 04 00 00 02 58 CRC')     # Target position 600
+    wait_state(d, lambda s: not s.moving and s.position_steps == 600, what='at 600')
+    time.sleep(0.35)                                 # stale: older than state_fresh_s
+    r.sent()
+    complete(d.move_to(700, MOTION))
+    assert r.sent()[0] == CHECK
+    wait_state(d, lambda s: not s.moving and s.position_steps == 700, what='at 700')
+    d.stop()                                         # a stop since the poll: checked again
+    r.sent()
+    complete(d.set_velocity(300.0, MOTION))
+    assert r.sent()[0] == CHECK
+    d.stop()
+    wait_state(d, lambda s: not s.moving, what='jog stopped')
+    complete(d.disable())                            # disabled: refused, nothing written
+    r.sent()
+    with pytest.raises(DriveError, match='not enabled'):
+        complete(d.move_to(100, MOTION))
+    assert r.sent() == []
+    complete(d.enable())                             # enabled again, no poll since: checked
+    r.sent()
+    complete(d.move_to(100, MOTION))
+    assert r.sent()[0] == CHECK
+    # an alarm the last poll saw: checked on the wire (and refused there)
+    wait_state(d, lambda s: not s.moving, what='at 100')
+    with r.line.lock:
+        r.unit().inject('drive_fault', rm.ALARM_OVERTEMPERATURE, 0)
+    complete(d.read_state())
+    r.sent()
+    with pytest.raises(DriveError, match='Overtemperature'):
+        complete(d.move_to(200, MOTION))
+    assert r.sent() == [CHECK]
+
+
 # -------------------------------------------------------------------- the unit's own watchdog
 def test_unit_watchdog_stops_a_jog_one_second_after_the_master_falls_silent(rig):
     """The step-wise polls keep the 1 s watchdog fed; when the master stops (a killed node) the

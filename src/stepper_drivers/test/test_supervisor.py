@@ -560,6 +560,7 @@ def test_an_owner_that_fails_stops_its_drives_says_why_and_ends_once():
 def test_owner_thread_priority_puts_the_owner_alone_on_sched_fifo(bus, priority):
     """owner_thread_priority: the owner thread on SCHED_FIFO at that priority (where this process
     may; otherwise the warning of the refusal below), no other thread; 0: nothing changes."""
+    supervisor._priority_refusal_told = False         # (told once per process)
     sup, _, drives = bus(owner_thread_priority=priority)
     owner = sup._thread.native_id
     fifo = priority and fifo_allowed(priority)
@@ -575,11 +576,17 @@ def test_owner_thread_priority_puts_the_owner_alone_on_sched_fifo(bus, priority)
 def test_a_refused_owner_thread_priority_is_a_warning_and_the_bus_works(bus):
     """A refused SCHED_FIFO (here a priority the kernel does not have, which fails for root too;
     the node's parameter allows 1..99) is one warning naming the parameter and why, and the
-    owner runs on the normal scheduler."""
+    owner runs on the normal scheduler. Told once per process: the owner of a second bus (a
+    node's next drive host) is refused in silence."""
+    supervisor._priority_refusal_told = False
     sup, _, drives = bus(owner_thread_priority=100)
     assert os.sched_getscheduler(sup._thread.native_id) == os.SCHED_OTHER
     (warning,) = [e for e in sup.events if 'owner_thread_priority' in e[2]]
     assert warning[0] == 'warning' and 'owner_thread_priority 100: SCHED_FIFO refused' in \
         warning[2], warning
+    assert '/etc/security/limits.conf' in warning[2] and 'owner_thread_priority: 0' in warning[2]
+    other, _, _ = bus(owner_thread_priority=100)
+    assert os.sched_getscheduler(other._thread.native_id) == os.SCHED_OTHER
+    assert not [e for e in other.events if 'owner_thread_priority' in e[2]]
     assert result(sup.submit('axis1', COMMAND, lambda: drives['axis1'].move_to(5, None),
                              'move')) is None

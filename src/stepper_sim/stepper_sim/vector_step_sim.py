@@ -269,13 +269,17 @@ class VectorStepNode(NmtSlave, SdoServer, PdoEngine, AecDrive):
                          'nvram_ok, cut, no_reply, link_ok, reboot')
 
 
+# TxPDO2..4 (CiA 301 pre-defined connection set: 0x280, 0x380, 0x480 + node-ID)
+LAGGED_TPDO_BASES = (0x280, 0x380, 0x480)
+
+
 class VectorStepSim:
     """One CAN bus with simulated Vector Steps (a stepper_sim.sim_node.SimBackend)."""
 
     def __init__(self, nodes: Sequence[NodeConfig], *, interface: str = 'socketcand',
                  channel: str = 'can0', host: str = '127.0.0.1', port: int = 29536,
                  eds: str | None = None, reboot_delay_s: float = 0.05, cycle_s: float = 0.002,
-                 storage_dir: str = ''):
+                 storage_dir: str = '', tpdo_lag_s: float = 0.0):
         if not nodes:
             raise ValueError('parameter drives: at least one simulated drive is needed')
         ids = [n.node_id for n in nodes]
@@ -290,6 +294,10 @@ class VectorStepSim:
                         else f'{interface} {channel}')
         self.reboot_delay_s = reboot_delay_s
         self.cycle_s = cycle_s
+        # TxPDO2..4 leave this long after they were sampled, as on a slow or busy bus (at
+        # 10-20 kbit/s a frame takes about 10 ms, and other drives' lower COB-IDs go first);
+        # TxPDO1 (statusword) and every other frame at once
+        self.tpdo_lag_s = tpdo_lag_s
         self.storage_dir = storage_dir
         self.lock = threading.RLock()
         self.network = canopen.Network()
@@ -376,6 +384,14 @@ class VectorStepSim:
 
     # Machinery ---------------------------------------------------------------------------------
     def send(self, cob: int, data: bytes) -> None:
+        if self.tpdo_lag_s > 0 and (cob & 0x780) in LAGGED_TPDO_BASES:
+            timer = threading.Timer(self.tpdo_lag_s, self._send_now, (cob, data))
+            timer.daemon = True
+            timer.start()
+            return
+        self._send_now(cob, data)
+
+    def _send_now(self, cob: int, data: bytes) -> None:
         try:
             self.network.send_message(cob, data)
             self.sent += 1
@@ -434,6 +450,8 @@ def build(node, eds: str | None = None) -> VectorStepSim:
     reboot = declare(node, 'reboot_delay_s', 0.05, 'silence between an NMT reset and boot-up')
     cycle = declare(node, 'cycle_s', 0.002, 'application cycle while something moves [s]')
     storage = declare(node, 'storage_dir', '', 'folder for the simulated EEPROM (Rloadsav)')
+    lag = declare(node, 'tpdo_lag_s', 0.0, 'TxPDO2..4 leave this long after they were sampled '
+                                          '(a slow or busy bus) [s]')
     drives = declare_drives(node, ['axis1'], {
         'node_id': (0, 'CANopen node-ID (1..127)'),
         'full_steps_per_rev': (200, 'motor full steps per revolution'),
@@ -472,7 +490,7 @@ def build(node, eds: str | None = None) -> VectorStepSim:
             strict_fault_reset=bool(p['strict_fault_reset'])))
     return VectorStepSim(configs, interface=interface, channel=channel, host=host, port=int(port),
                          eds=eds, reboot_delay_s=float(reboot), cycle_s=float(cycle),
-                         storage_dir=storage)
+                         storage_dir=storage, tpdo_lag_s=float(lag))
 
 
 def installed_eds() -> str | None:

@@ -98,6 +98,8 @@ class Rd4Drive(Drive):
         self._last_position: tuple[int, float] | None = None
         self._velocity = 0.0
         self._notes: set[str] = set()
+        # (time, epoch) of the last poll that found no alarm (None: the last found one)
+        self._state_seen: tuple[float, int] | None = None
 
     min_velocity_steps_s = float(rm.MIN_SPEED_PPS)          # §6.4 Min. speed
 
@@ -170,6 +172,18 @@ class Rd4Drive(Drive):
     def _require_intent(self, what: str) -> None:
         if not self._intent_enabled:
             raise DriveError(f'{what}: {self.name} is not enabled; call enable first')
+
+    def _check_enabled(self, what: str, epoch: int) -> Steps[None]:
+        """The unit would move: known from the last poll while that is fresh (younger than
+        state_fresh_s, no alarm, and no stop, disable, enable or fault reset since), so the
+        motion's own frames go first; else one FC04 on the wire before them."""
+        self._require_intent(what)
+        seen = self._state_seen
+        if seen is not None and seen[1] == self._epoch and \
+                time.monotonic() - seen[0] <= self.state_fresh_s:
+            return
+        self._check_enabled_on_wire(what)
+        yield from self._step(epoch, what)
 
     def _check_enabled_on_wire(self, what: str) -> int:
         """One FC04 of Alarms and Status word: any alarm (the latched Emergency of a power-up,
@@ -374,10 +388,12 @@ class Rd4Drive(Drive):
 
     def read_state(self) -> Steps[DriveState]:
         first, count = rm.STATE_BLOCK
+        epoch = self._epoch
         w = self._read_input(first, count)
         now = time.monotonic()
         alarms, sw = w[0], w[1]
         self._examine(alarms, sw)
+        self._state_seen = None if alarms else (now, epoch)
         position = rm.join32(w[2:4], signed=True)
         velocity_reg = rm.decode(IR['CURRENT_VELOCITY'], w[4:5])
         current_ma = rm.decode(IR['CURRENT_VALUE'], w[7:8])
@@ -545,8 +561,7 @@ class Rd4Drive(Drive):
                              'not valid; nothing was written')
         acc, dec, speed = self._profile_values(motion, 'WORK_SPEED', motion.velocity_steps_s)
         epoch = self._epoch
-        self._check_enabled_on_wire('move_to')
-        yield from self._step(epoch, 'move_to')
+        yield from self._check_enabled('move_to', epoch)
         yield from self._write_profile(acc, dec, 'WORK_SPEED', speed, epoch, 'move_to')
         self._write('TARGET_POSITION', target)
         yield from self._step(epoch, 'move_to')
@@ -572,8 +587,7 @@ class Rd4Drive(Drive):
         if jogging and not self._profile_changed(acc, dec, 'JOG_SPEED', speed):
             return                                # nothing new to say
         epoch = self._epoch
-        self._check_enabled_on_wire('set_velocity')
-        yield from self._step(epoch, 'set_velocity')
+        yield from self._check_enabled('set_velocity', epoch)
         speed_changed = yield from self._write_profile(acc, dec, 'JOG_SPEED', speed, epoch,
                                                        'set_velocity')
         if jogging and not speed_changed:

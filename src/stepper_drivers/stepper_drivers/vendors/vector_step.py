@@ -218,6 +218,7 @@ class VectorStepDrive(Drive):
         self._statusword_seen = (0, 0.0)             # (newest TxPDO statusword, when it came)
         self._position_cob = vm.PDO_COB_BASES_TX[POSITION_TPDO - 1] + self.node_id
         self._position_rx: tuple[float, int] | None = None   # (reception, position): last TxPDO2
+        self._tpdo_entries: dict[int, tuple] = {}     # COB-ID: what that TxPDO maps
         self._burst_given_up: int | None = None
         self._ip_active = False            # start_interpolation done; no stop or error since
 
@@ -449,8 +450,10 @@ class VectorStepDrive(Drive):
                 'tx', number, entries, 0xFE, event_timer_ms=timer,
                 inhibit_time_100us=self.inhibit_100us if number in INHIBITED_TPDOS else 0)
         self.link.node.setup_pdos(upload=False)
+        self._tpdo_entries = {}
         for number in range(1, len(vm.DRIVER_TPDOS) + 1):   # before the link's notifying one
             pdo = self.link.node.tpdo[number]
+            self._tpdo_entries[pdo.cob_id] = vm.DRIVER_TPDOS[number - 1]
             if self._on_tpdo not in pdo.callbacks:
                 pdo.add_callback(self._on_tpdo)
         self.link.watch_tpdos()
@@ -479,12 +482,23 @@ class VectorStepDrive(Drive):
         bound_s = len(vm.DRIVER_TPDOS) * max(self.can.drive_count, 1) * FRAME_BITS \
             / self.can.bitrate + BURST_SLACK_S + self.inhibit_100us * 1e-4
         if not (yield from self.link.wait(self._coherent, since + bound_s - time.monotonic())):
-            # a frame of the burst is lost: do not slow every poll down until the next change
+            # A frame of the burst is late (a slow or busy bus: other drives' lower COB-IDs go
+            # first) or lost: what the late TxPDOs carry is read by SDO instead, so this
+            # snapshot holds nothing older than its statusword (a position from before a
+            # "target reached" would end a move_to at the wrong place). Then no poll waits
+            # again until the next change.
             self._burst_given_up = newest
-            logger.warning('%sTxPDO burst of statusword 0x%04X incomplete after %.3f s (%s): '
-                           'this snapshot mixes it with older values', self._prefix(), newest,
-                           bound_s, ', '.join(f'0x{c:03X}: 0x{sw:04X}' for c, sw
-                                              in sorted(self._pdo_statusword.items())))
+            late = sorted(c for c, sw in self._pdo_statusword.items() if sw != newest)
+            logger.info('%sTxPDO burst of statusword 0x%04X incomplete after %.3f s (late: %s):'
+                        ' reading their objects by SDO', self._prefix(), newest, bound_s,
+                        ', '.join(f'0x{c:03X}' for c in late))
+            values = self._values()
+            for cob in late:
+                for index, sub, _bits in self._tpdo_entries.get(cob, ()):
+                    if index != vm.STATUSWORD:
+                        yield 0.0
+                        values[index] = self.link.read(index, sub)
+            self._position_rx = None          # the position is the SDO's: current
 
     def _seed(self) -> Steps[None]:
         """Current values by SDO, so the cache is right before the first TxPDO arrives."""
