@@ -41,9 +41,39 @@ S ...`; the node streams a point every SYNC period in interpolated position; the
 follows the SYNC frames it sees and has no such parameter). The mode the drives were in while
 following (DriveStatus.mode) and any node log line about interpolation are reported.
 
+MoveIt-like dense trajectories (`--dense`), per bus with its config/<vendor>.yaml (Vector Step:
+its SYNC of 0.1 s, profile position; `--vector-sync-period S` adds runs with that period):
+a straight line in the joint space of the first two joints (2.0 and 1.0 rad, 2.24 rad long)
+and a quarter circle of radius 1 rad (1.57 rad long), each with quintic timing, rest to rest,
+over 3 s, a point every 0.1 s and every 0.05 s (`--dt`), with positions, velocities and
+accelerations as MoveIt's time parameterisation fills them, the first point the start state at
+time 0 (as MoveIt sends it), header.stamp zero (start when the goal arrives) and no tolerances.
+Per trajectory:
+
+- finish time: goal sent -> result arrived, against the duration and MoveIt's limit (its example
+  configurations: duration x 1.2 + 0.5 s); the result code and text;
+- geometric path error: the distance in the (joint1, joint2) plane of each true-position sample
+  (goal sent .. result) from the polyline of the trajectory's points (the start included), max
+  and RMS, rad and % of the polyline's length;
+- timing error: per joint, the true position against the trajectory's own positions
+  interpolated linearly at the same time (time 0: the goal sent), max;
+- the node's merge of the points into segments (its log line for the goal).
+
+Two nodes (`--two-node`): an X-PLUS MT node and an RD4 node (line timing on), each sent its two
+joints' part of one four-joint trajectory (the quintic line, 2.0 and 1.0 rad per node, 3.2 s)
+with the same header.stamp, 0.8 s ahead, as MoveIt splits a planning group over two
+controllers; points every 0.8 s and every 0.1 s (`--two-node-dt`). Per node the finish time
+(from the stamp, where MoveIt counts from for a stamped trajectory), result, path error in its
+joints' plane; per joint the timing error (time 0: the stamp); and the arrival spread at each
+point: the time each axis passes the point's whole-step position (linear between the two
+true-position samples around it; an axis whose point is its start step is left out), max - min
+over the four axes, against one poll period of each node plus one RD4 line transaction.
+
 Run: source scripts/env.sh && python scripts/bench_trajectory.py [--vendor rd4 ...]
      [--trajectories N] [--sample-rate HZ] [--band F] [--vector-sync-period [S ...]]
-     [--json out.json]            (everything: about 100 s)
+     [--dense] [--two-node] [--dt S ...] [--two-node-dt S ...]
+     [--json out.json]            (everything but the dense part: about 100 s)
+     --dense and/or --two-node run only those parts (all four buses and both: a few minutes).
 """
 
 from __future__ import annotations
@@ -54,6 +84,7 @@ import json
 import math
 import os
 import pathlib
+import re
 import statistics
 import sys
 import tempfile
@@ -94,6 +125,77 @@ SHAPES = (
     ((1.0, -1.0, 2.0), (2.0, 1.5, 0.5), (3.0, -0.5, -1.5), (4.0, 0.5, -0.5)),
     ((1.0, 3.0, 1.0), (2.0, 1.0, -1.5), (3.0, 0.0, 0.5)),
 )
+
+# MoveIt-like dense trajectories (--dense, --two-node)
+MOVEIT_SCALING = 1.2           # allowed_execution_duration_scaling (its example configurations)
+MOVEIT_MARGIN_S = 0.5          # allowed_goal_duration_margin
+DENSE_DURATION_S = 3.0
+DENSE_KINDS = ('line', 'arc')
+LINE_RAD = (2.0, 1.0)          # per joint: 2.24 rad in joint space
+ARC_RADIUS_RAD = 1.0           # a quarter circle: 1.57 rad
+TWO_NODE_LEAD_S = 0.8          # header.stamp this far ahead, the same for both parts
+TWO_NODE_DURATION_S = 3.2      # a point every 0.8 s falls on the 0.1 s points too
+TWO_NODE = ('xplus_mt', 'rd4')
+
+
+def duration_msg(t: float) -> Duration:
+    sec = int(math.floor(t))
+    nanosec = int(round((t - sec) * 1e9))
+    return Duration(sec=sec + nanosec // 1_000_000_000, nanosec=nanosec % 1_000_000_000)
+
+
+def quintic(s: float) -> tuple[float, float, float]:
+    """Rest-to-rest quintic timing: f(s), df/ds, d2f/ds2 for s in 0..1."""
+    return (10 * s ** 3 - 15 * s ** 4 + 6 * s ** 5, 30 * s ** 2 - 60 * s ** 3 + 30 * s ** 4,
+            60 * s - 180 * s ** 2 + 120 * s ** 3)
+
+
+def line_points(start: list[float], delta: list[float], duration_s: float, dt_s: float
+                ) -> list[tuple[float, list[float], list[float], list[float]]]:
+    """[(time_from_start, positions, velocities, accelerations)]: a straight line from `start`
+    by `delta` with quintic timing, a point every dt_s, the first the start state at time 0."""
+    n, T = int(round(duration_s / dt_s)), duration_s
+    out = []
+    for k in range(n + 1):
+        f, df, ddf = quintic(k / n)
+        out.append((round(k * dt_s, 9), [a + f * d for a, d in zip(start, delta)],
+                    [df / T * d for d in delta], [ddf / T ** 2 * d for d in delta]))
+    return out
+
+
+def arc_points(start: list[float], signs: tuple[float, float], radius: float,
+               duration_s: float, dt_s: float
+               ) -> list[tuple[float, list[float], list[float], list[float]]]:
+    """A quarter circle from `start`: joint1 = x1 + sx r sin(phi), joint2 = x2 + sy r (1 -
+    cos(phi)), phi 0..pi/2 with quintic timing (each joint moves one way only)."""
+    n, T = int(round(duration_s / dt_s)), duration_s
+    (x1, x2), (sx, sy), r = start, signs, radius
+    out = []
+    for k in range(n + 1):
+        f, df, ddf = quintic(k / n)
+        phi, w, dw = math.pi / 2 * f, math.pi / 2 * df / T, math.pi / 2 * ddf / T ** 2
+        out.append((round(k * dt_s, 9),
+                    [x1 + sx * r * math.sin(phi), x2 + sy * r * (1 - math.cos(phi))],
+                    [sx * r * math.cos(phi) * w, sy * r * math.sin(phi) * w],
+                    [sx * r * (math.cos(phi) * dw - math.sin(phi) * w * w),
+                     sy * r * (math.sin(phi) * dw + math.cos(phi) * w * w)]))
+    return out
+
+
+def away(start: list[float]) -> tuple[float, float]:
+    """Directions that keep the joints near where they began: + below 1.0 / 0.5 rad, else -."""
+    return (1.0 if start[0] < 1.0 else -1.0), (1.0 if start[1] < 0.5 else -1.0)
+
+
+def trajectory_msg(joints: list[str], points, columns=None) -> JointTrajectory:
+    """The points as MoveIt sends them (header.stamp zero); `columns`: these joints' part."""
+    idx = list(range(len(joints))) if columns is None else columns
+    msg = JointTrajectory(joint_names=[joints[i] for i in idx])
+    for t, pos, vel, acc in points:
+        msg.points.append(JointTrajectoryPoint(
+            positions=[float(pos[i]) for i in idx], velocities=[float(vel[i]) for i in idx],
+            accelerations=[float(acc[i]) for i in idx], time_from_start=duration_msg(t)))
+    return msg
 
 
 @dataclasses.dataclass
@@ -144,28 +246,62 @@ class Recorder:
         return older[-1] if older else None
 
 
-def send_goal(ros: RosClient, node: str, goal, on_feedback, timeout_s: float):
-    """One follow_joint_trajectory goal; its result (rclpy ActionClient through ros.in_spin:
-    see RosClient.in_spin)."""
-    from rclpy.action import ActionClient
-    client = ActionClient(ros.node, FollowJointTrajectory, f'/{node}/follow_joint_trajectory')
-    try:
-        if not client.wait_for_server(timeout_sec=10):
-            raise RuntimeError(f'/{node}/follow_joint_trajectory not available')
+class ActionGoal:
+    """One follow_joint_trajectory goal (rclpy ActionClient through ros.in_spin: see
+    RosClient.in_spin). The server is found when it is made; sent_t is taken just before the
+    goal goes out, accepted_t and result_t when the answers arrive (CLOCK_MONOTONIC, in the
+    spin thread)."""
 
-        def wait(fut, t):
-            done = threading.Event()
-            fut.add_done_callback(lambda _f: done.set())
-            if not done.wait(t):
-                raise RuntimeError(f'no answer from /{node}/follow_joint_trajectory in {t:g} s')
-            return fut.result()
-        handle = wait(ros.in_spin(client.send_goal_async, goal,
-                                  feedback_callback=lambda f: on_feedback(f.feedback)), 10.0)
+    def __init__(self, ros: RosClient, node: str):
+        from rclpy.action import ActionClient
+        self.ros, self.name = ros, f'/{node}/follow_joint_trajectory'
+        self.client = ActionClient(ros.node, FollowJointTrajectory, self.name)
+        self.sent_t = self.accepted_t = self.result_t = None
+        self._result_fut = None
+        if not self.client.wait_for_server(timeout_sec=10):
+            self.close()
+            raise RuntimeError(f'{self.name} not available')
+
+    def _wait(self, fut, t: float, what: str):
+        done = threading.Event()
+        fut.add_done_callback(lambda _f: done.set())
+        if not done.wait(t):
+            raise RuntimeError(f'no {what} from {self.name} in {t:g} s')
+        return fut.result()
+
+    def send(self, goal, on_feedback=lambda f: None) -> None:
+        def accepted(_f):
+            self.accepted_t = time.monotonic()
+        def send_now():                  # in the spin thread: the goal goes out now
+            self.sent_t = time.monotonic()
+            return self.client.send_goal_async(
+                goal, feedback_callback=lambda f: on_feedback(f.feedback))
+        fut = self.ros.in_spin(send_now)
+        fut.add_done_callback(accepted)
+        handle = self._wait(fut, 10.0, 'goal response')
         if not handle.accepted:
-            raise RuntimeError('goal not accepted')
-        return wait(ros.in_spin(handle.get_result_async), timeout_s).result
+            raise RuntimeError(f'goal not accepted by {self.name}')
+
+        def arrived(_f):
+            self.result_t = time.monotonic()
+        self._result_fut = self.ros.in_spin(handle.get_result_async)
+        self._result_fut.add_done_callback(arrived)
+
+    def result(self, timeout_s: float):
+        return self._wait(self._result_fut, timeout_s, 'result').result
+
+    def close(self) -> None:
+        self.ros.in_spin(self.client.destroy)
+
+
+def send_goal(ros: RosClient, node: str, goal, on_feedback, timeout_s: float):
+    """One follow_joint_trajectory goal; its result."""
+    g = ActionGoal(ros, node)
+    try:
+        g.send(goal, on_feedback)
+        return g.result(timeout_s)
     finally:
-        ros.in_spin(client.destroy)
+        g.close()
 
 
 # ---------------------------------------------------------------------------- line transaction
@@ -238,6 +374,64 @@ def on_time(samples: list[tuple[float, float]], period_s: float) -> list[tuple[f
 
 def rms(xs: list[float]) -> float:
     return math.sqrt(sum(x * x for x in xs) / len(xs)) if xs else float('nan')
+
+
+def polyline_figures(samples: dict[str, list[tuple[float, float]]], drives: tuple[str, str],
+                     poly: list[tuple[float, float]], t_from: float, t_to: float) -> dict:
+    """Geometric path error: each sample of the first drive in t_from..t_to with the second
+    interpolated at its time (the simulator publishes both at one tick), its distance in the
+    plane from the polyline `poly` [rad]; max, RMS, and in fractions of the polyline's length."""
+    length = sum(math.hypot(b[0] - a[0], b[1] - a[1]) for a, b in zip(poly, poly[1:]))
+    first, second = drives
+    dist = []
+    for t, x1 in samples[first]:
+        if t_from <= t <= t_to:
+            p = (x1, interp(samples[second], t))
+            dist.append(min(seg_distance(p, a, b) for a, b in zip(poly, poly[1:])))
+    worst, r = max(dist, default=float('nan')), rms(dist)
+    return {'length_rad': length, 'path_max_rad': worst, 'path_rms_rad': r,
+            'path_max_frac': worst / length, 'path_rms_frac': r / length,
+            'path_samples': len(dist)}
+
+
+def timing_error(samples: list[tuple[float, float]], own: list[tuple[float, float]], t0: float,
+                 t_from: float, t_to: float) -> tuple[float, float | None]:
+    """(max |true - the trajectory's own position linear between its points at the same time|
+    [rad], trajectory time of that max) over the samples in t_from..t_to; own: [(time_from_start,
+    position)], t0 the trajectory's start (held before and after its points)."""
+    worst, at = float('nan'), None
+    for t, x in samples:
+        if t_from <= t <= t_to:
+            err = abs(x - interp(own, t - t0))
+            if not err <= worst:
+                worst, at = err, t - t0
+    return worst, at
+
+
+def crossing(samples: list[tuple[float, float]], target: float, sign: float
+             ) -> tuple[float, float] | None:
+    """(when a joint moving one way (sign) first reached `target` (steps, a whole step): linear
+    between the two samples around it, or the first sample within half a step when it stops
+    short of the exact value; how far apart those two samples are); None when it never got
+    there."""
+    before = None
+    for t, x in samples:
+        if sign * (x - target) >= -0.5:
+            if before is not None and sign * (x - target) >= 0 > sign * (before[1] - target):
+                (t0, x0) = before
+                return t0 + (t - t0) * (target - x0) / (x - x0), t - t0
+            return t, (t - before[0]) if before is not None else 0.0
+        before = (t, x)
+    return None
+
+
+def samples_lag(samples: list[tuple[float, float]], goal: float, tol: float,
+                result_t: float) -> float | None:
+    """A SUCCESSFUL result means the node saw the joint within a step of its goal: seconds from
+    the result to the first sample there (> 0: the samples arrive here late, this process fell
+    behind them and stamped them late); inf when no sample up to the end shows it there."""
+    at = next((t for t, x in samples if abs(x - goal) <= tol), None)
+    return math.inf if at is None else at - result_t
 
 
 def analyse(points_rad, start_t: float, start_steps: dict, convs: dict, limits: dict,
@@ -334,30 +528,68 @@ class Bench:
                 print(f'   ({str(exc).splitlines()[0]})')
 
 
-def run_vendor(spec: Spec, ros: RosClient, log_dir: pathlib.Path, n: int, sample_hz: float,
-               band_frac: float, sync_period_s: float | None) -> dict:
-    tag = spec.key + ('' if sync_period_s is None else f'_sync{sync_period_s:g}')
-    params = load_params(f'{spec.key}.yaml', f'{spec.key}_node')
-    rate_hz = float(params['publish_rate_hz'])
-    convs, limits, joints = {}, {}, []
-    start_stop = XplusMtDrive.start_stop_steps_s if spec.key == 'xplus_mt' else 0.0
-    for d in DRIVES:
-        p = params[f'drives.{d}']
-        conv = UnitConversion(float(p['steps_per_rev']), float(p.get('gear_ratio', 1.0)),
-                              p.get('unit', 'rad'), float(p.get('lead_m', 0.0)))
-        convs[d] = conv
-        lo, hi = sorted((conv.to_steps(p['min_position']), conv.to_steps(p['max_position'])))
-        limits[d] = JointLimits(lo, hi, conv.to_steps(p['max_velocity']),
-                                conv.to_steps(p['max_acceleration']), conv.steps_per_unit,
-                                p.get('unit', 'rad'), start_stop)
-        joints.append(p['joint_name'])
+class Bus:
+    """One bus brought up (`bring_up`): the simulator with its line timing on and its true
+    positions at the sample rate, the line transaction measured on it before the node opened the
+    link, the node with config/<vendor>.yaml, the first two drives enabled."""
+
+    def __init__(self, spec: Spec, bench: Bench, params: dict):
+        self.spec, self.bench = spec, bench
+        self.rate_hz = float(params['publish_rate_hz'])
+        self.convs: dict[str, UnitConversion] = {}
+        self.limits: dict[str, JointLimits] = {}
+        self.joints: list[str] = []
+        start_stop = XplusMtDrive.start_stop_steps_s if spec.key == 'xplus_mt' else 0.0
+        for d in DRIVES:
+            p = params[f'drives.{d}']
+            conv = UnitConversion(float(p['steps_per_rev']), float(p.get('gear_ratio', 1.0)),
+                                  p.get('unit', 'rad'), float(p.get('lead_m', 0.0)))
+            self.convs[d] = conv
+            lo, hi = sorted((conv.to_steps(p['min_position']), conv.to_steps(p['max_position'])))
+            self.limits[d] = JointLimits(lo, hi, conv.to_steps(p['max_velocity']),
+                                         conv.to_steps(p['max_acceleration']),
+                                         conv.steps_per_unit, p.get('unit', 'rad'), start_stop)
+            self.joints.append(p['joint_name'])
+        self.true: dict[str, Recorder] = {}
+        self.status: dict[str, Recorder] = {}
+        self.node: Proc | None = None
+        self.transaction_s, self.transaction_what = float('nan'), ''
+
+    def still(self, timeout_s: float = 10.0) -> None:
+        """Both drives report standing still (status.moving false)."""
+        for d in DRIVES:
+            wait_for(running(self.node, lambda d=d: not (self.status[d].last_before(
+                time.monotonic()) or DriveStatus(moving=True)).moving),
+                timeout_s, f'{self.spec.title} {d} at rest')
+
+    def true_rad(self, d: str, t: float) -> float:
+        return self.convs[d].from_steps(self.true[d].last_before(t))
+
+    def log_size(self) -> int:
+        return self.node.log_path.stat().st_size
+
+    def log_since(self, offset: int) -> list[str]:
+        with open(self.node.log_path, 'rb') as f:
+            f.seek(offset)
+            return f.read().decode(errors='replace').splitlines()
+
+    def disable(self, ros: RosClient) -> None:
+        for d in DRIVES:
+            ros.call(SetBool, f'/{self.bench.node_name}/{d}/enable', SetBool.Request(data=False),
+                     30)
+
+    def close(self, ros: RosClient) -> None:
+        self.bench.close()
+        for rec in [*self.true.values(), *self.status.values()]:
+            ros.in_spin(ros.node.destroy_subscription, rec.sub)
+
+
+def bring_up(spec: Spec, ros: RosClient, log_dir: pathlib.Path, tag: str, sample_hz: float,
+             node_extra: list[str]) -> Bus:
     b = Bench(spec, ros, log_dir, tag)
+    bus = Bus(spec, b, load_params(f'{spec.key}.yaml', f'{spec.key}_node'))
     link = str(free_port()) if spec.link != 'path' else str(log_dir / f'{tag}.tty')
-    node_extra = [] if sync_period_s is None else ['-p', f'can.sync_period_s:={sync_period_s}']
-    results: dict[str, Any] = {'vendor': spec.key, 'tag': tag, 'rate_hz': rate_hz,
-                               'sync_period_s': sync_period_s, 'trajectories': []}
-    true: dict[str, Recorder] = {}
-    status: dict[str, Recorder] = {}
+    true, status = bus.true, bus.status
     try:
         if spec.link == 'broker':
             broker = b.proc([executable('stepper_sim', 'socketcand_broker'), '--port', link],
@@ -368,11 +600,10 @@ def run_vendor(spec: Spec, ros: RosClient, log_dir: pathlib.Path, n: int, sample
                       '-p', f'{spec.link_param}:={link}', '-p', f'publish_rate_hz:={sample_hz}',
                       *[x for a in spec.sim_args for x in ('-p', a)]], 'sim')
         sim.wait_line('ready', 30)
-        txn_s, txn_what = transaction_s(spec, link)
-        results.update(transaction_s=txn_s, transaction_what=txn_what)
-        node = b.proc([executable('stepper_drivers', b.node_name), '--ros-args',
-                       '--params-file', str(CONFIG / f'{spec.key}.yaml'),
-                       '-p', f'{spec.link_param}:={link}', *node_extra], 'node')
+        bus.transaction_s, bus.transaction_what = transaction_s(spec, link)
+        node = bus.node = b.proc([executable('stepper_drivers', b.node_name), '--ros-args',
+                                  '--params-file', str(CONFIG / f'{spec.key}.yaml'),
+                                  '-p', f'{spec.link_param}:={link}', *node_extra], 'node')
         for d in DRIVES:
             true[d] = Recorder(ros, Float64, f'/{spec.key}_sim/{d}/true_position_steps',
                                lambda m: m.data)
@@ -390,6 +621,24 @@ def run_vendor(spec: Spec, ros: RosClient, log_dir: pathlib.Path, n: int, sample
                      10, f'{spec.title} {d} enabled')
         wait_for(lambda: all(true[d].last_before(time.monotonic()) is not None
                              for d in DRIVES), 10, 'true positions')
+    except BaseException:
+        bus.close(ros)
+        raise
+    return bus
+
+
+def run_vendor(spec: Spec, ros: RosClient, log_dir: pathlib.Path, n: int, sample_hz: float,
+               band_frac: float, sync_period_s: float | None) -> dict:
+    tag = spec.key + ('' if sync_period_s is None else f'_sync{sync_period_s:g}')
+    node_extra = [] if sync_period_s is None else ['-p', f'can.sync_period_s:={sync_period_s}']
+    bus = bring_up(spec, ros, log_dir, tag, sample_hz, node_extra)
+    b, rate_hz, convs, limits, joints = bus.bench, bus.rate_hz, bus.convs, bus.limits, bus.joints
+    true, status = bus.true, bus.status
+    results: dict[str, Any] = {'vendor': spec.key, 'tag': tag, 'rate_hz': rate_hz,
+                               'sync_period_s': sync_period_s, 'trajectories': [],
+                               'transaction_s': bus.transaction_s,
+                               'transaction_what': bus.transaction_what}
+    try:
         for i in range(n):
             shape = SHAPES[i % len(SHAPES)]
             points = [(t * spec.time_scale, x1, x2) for t, x1, x2 in shape]
@@ -435,14 +684,11 @@ def run_vendor(spec: Spec, ros: RosClient, log_dir: pathlib.Path, n: int, sample
                        feedback=[(round(t - start_t, 4), list(f.desired.positions),
                                   list(f.actual.positions)) for t, f in feedback])
             results['trajectories'].append(res)
-        for d in DRIVES:
-            ros.call(SetBool, f'/{b.node_name}/{d}/enable', SetBool.Request(data=False), 30)
+        bus.disable(ros)
         results['load'] = os.getloadavg()[0]
         results['cores'] = os.cpu_count()
     finally:
-        b.close()
-        for rec in [*true.values(), *status.values()]:
-            ros.in_spin(ros.node.destroy_subscription, rec.sub)
+        bus.close(ros)
     node_log = (log_dir / f'{tag}_node.log').read_text(errors='replace')
     results['node_log_mode'] = [line.strip() for line in node_log.splitlines()
                                 if 'interpolat' in line.lower()][:5]
@@ -516,6 +762,442 @@ def report(spec: Spec, r: dict) -> None:
           + f'; {dropped} of {n} true-position samples left out (late: a burst after a stall)')
 
 
+# ------------------------------------------------------------------ MoveIt-like dense trajectories
+def moveit_limit_s(duration_s: float) -> float:
+    return MOVEIT_SCALING * duration_s + MOVEIT_MARGIN_S
+
+
+def merge_line(lines: list[str]) -> dict:
+    """The node's log line on merging points into segments for one goal, parsed; its warnings
+    about the goal (refusal, outcome)."""
+    out: dict[str, Any] = {'merge': None, 'segments': None, 'min_segment_s': None,
+                           'warnings': [ln.strip() for ln in lines if 'WARN' in ln
+                                        or 'ERROR' in ln][:5]}
+    for ln in lines:
+        m = re.search(r'(\d+) points followed as (\d+) segments of at least ([0-9.e+-]+) s', ln)
+        if m:
+            out.update(merge=ln.strip(), points=int(m.group(1)), segments=int(m.group(2)),
+                       min_segment_s=float(m.group(3)))
+            far = re.search(r'within (.*)$', ln)
+            out['merge_far'] = far.group(1).strip() if far else ''
+    return out
+
+
+def collect(rec: Recorder, t0: float, t1: float, period_s: float) -> tuple[list, int]:
+    """(the on-time samples of t0 - 0.2 .. t1 + 0.2, how many were left out)."""
+    raw = rec.between(t0 - 0.2, t1 + 0.2)
+    kept = on_time(raw, period_s)
+    return kept, len(raw) - len(kept)
+
+
+def run_dense(spec: Spec, ros: RosClient, log_dir: pathlib.Path, sample_hz: float,
+              kinds: list[str], steps_s: list[float], sync_period_s: float | None) -> dict:
+    """The MoveIt-like dense trajectories on one bus (see the module's docstring)."""
+    tag = f'{spec.key}_dense' + ('' if sync_period_s is None else f'_sync{sync_period_s:g}')
+    node_extra = [] if sync_period_s is None else ['-p', f'can.sync_period_s:={sync_period_s}']
+    results: dict[str, Any] = {'part': 'dense', 'vendor': spec.key, 'tag': tag,
+                               'sync_period_s': sync_period_s, 'trajectories': []}
+    bus = bring_up(spec, ros, log_dir, tag, sample_hz, node_extra)
+    results.update(rate_hz=bus.rate_hz, transaction_s=bus.transaction_s,
+                   transaction_what=bus.transaction_what, joints=bus.joints)
+    try:
+        for kind in kinds:
+            for dt in steps_s:
+                res: dict[str, Any] = {'kind': kind, 'dt_s': dt, 'duration_s': DENSE_DURATION_S,
+                                       'limit_s': moveit_limit_s(DENSE_DURATION_S)}
+                results['trajectories'].append(res)
+                try:
+                    bus.still()
+                    time.sleep(0.3)                  # standstill: a clean start position
+                    start = [bus.true_rad(d, time.monotonic()) for d in DRIVES]
+                    signs = away(start)
+                    points = (line_points(start, [s * x for s, x in zip(signs, LINE_RAD)],
+                                          DENSE_DURATION_S, dt) if kind == 'line' else
+                              arc_points(start, signs, ARC_RADIUS_RAD, DENSE_DURATION_S, dt))
+                    res.update(_dense_one(bus, ros, points, sample_hz))
+                except Exception as exc:  # noqa: BLE001 - the rest of this bus is doubtful
+                    res['error'] = f'{type(exc).__name__}: {exc}'
+                    results['error'] = f'{kind} {dt:g} s: {res["error"]}'
+                    break
+            if 'error' in results:
+                break
+        if 'error' not in results:
+            bus.disable(ros)
+        results['load'] = os.getloadavg()[0]
+        results['cores'] = os.cpu_count()
+    finally:
+        bus.close(ros)
+    report_dense(spec, results, log_dir)
+    return results
+
+
+def _dense_one(bus: Bus, ros: RosClient, points, sample_hz: float) -> dict:
+    """Send one trajectory (header.stamp zero) and measure it."""
+    feedback: list = []
+    mark = bus.log_size()
+    g = ActionGoal(ros, bus.bench.node_name)
+    try:
+        g.send(FollowJointTrajectory.Goal(trajectory=trajectory_msg(bus.joints, points)),
+               lambda f: feedback.append((time.monotonic(), f)))
+        try:
+            result = g.result(moveit_limit_s(points[-1][0]) + 20.0)
+        except RuntimeError:
+            raise RuntimeError(
+                f'no result {time.monotonic() - g.sent_t:.1f} s after the goal was sent '
+                f'(MoveIt would have canceled at {moveit_limit_s(points[-1][0]):.1f} s); last '
+                f'feedback: {_last_feedback(feedback, g.sent_t)}') from None
+    finally:
+        g.close()
+    time.sleep(0.3)                              # the last samples and log lines are in
+    t0, t1 = g.sent_t, g.result_t
+    samples, dropped = {}, 0
+    for d in DRIVES:
+        kept, left = collect(bus.true[d], t0, t1, 1.0 / sample_hz)
+        samples[d] = [(t, bus.convs[d].from_steps(x)) for t, x in kept]
+        dropped += left
+    poly = [(p[1][0], p[1][1]) for p in points]
+    out = polyline_figures(samples, DRIVES, poly, t0, t1)
+    out['timing_max_rad'], out['timing_at_s'] = {}, {}
+    for i, d in enumerate(DRIVES):
+        own = [(p[0], p[1][i]) for p in points]
+        worst, at = timing_error(samples[d], own, t0, t0, t1)
+        out['timing_max_rad'][d], out['timing_at_s'][d] = worst, at
+    fb = {d: max((abs(f.error.positions[i]) for _t, f in feedback), default=float('nan'))
+          for i, d in enumerate(DRIVES)}
+    if result.error_code == 0:
+        out['samples_lag_s'] = max(samples_lag(
+            samples[d], points[-1][1][i], 1.5 / bus.convs[d].steps_per_unit, t1)
+            for i, d in enumerate(DRIVES))
+    out.update(merge_line(bus.log_since(mark)))
+    out.update(points_n=len(points), error_code=result.error_code,
+               error_string=result.error_string, finish_s=t1 - t0,
+               accepted_s=(g.accepted_t - t0) if g.accepted_t else None,
+               start_rad=list(points[0][1]), end_rad=list(points[-1][1]),
+               feedback_n=len(feedback), feedback_error_max_rad=fb, samples_dropped=dropped,
+               samples={d: [(round(t - t0, 4), x) for t, x in samples[d]] for d in DRIVES})
+    return out
+
+
+def _last_feedback(feedback: list, t0: float) -> str:
+    if not feedback:
+        return 'none'
+    t, f = feedback[-1]
+    return (f'at {t - t0:.2f} s desired {[round(x, 3) for x in f.desired.positions]} actual '
+            f'{[round(x, 3) for x in f.actual.positions]} rad')
+
+
+def code_name(code: int) -> str:
+    names = {0: 'SUCCESSFUL', -1: 'INVALID_GOAL', -2: 'INVALID_JOINTS',
+             -3: 'OLD_HEADER_TIMESTAMP', -4: 'PATH_TOLERANCE_VIOLATED',
+             -5: 'GOAL_TOLERANCE_VIOLATED'}
+    return names.get(code, str(code))
+
+
+def dense_row(title: str, t: dict) -> str:
+    """One trajectory as a markdown table row."""
+    what = f'{t["kind"]}, {t["dt_s"]:g} s'
+    if 'finish_s' not in t:
+        return f'| {title} | {what} | **failed**: {t.get("error", "?")} | | | | |'
+    result = code_name(t['error_code'])
+    if t['error_code'] != 0:
+        result = f'**{result}**: {t["error_string"]}'
+    finish = t['finish_s']
+    verdict = 'within' if finish <= t['limit_s'] else '**over**'
+    if t.get('samples_lag_s', 0) > 0:
+        result += f' (samples late by {t["samples_lag_s"]:.2f} s: figures **not valid**)'
+    timing = ' / '.join(f'{1000 * t["timing_max_rad"][d]:.1f}' for d in DRIVES)
+    segs = ('no merge' if t.get('segments') is None else
+            f'{t["points"]} points as {t["segments"]} segments (>= {t["min_segment_s"]:.3g} s); '
+            f'plan within {t.get("merge_far", "?")} of the points')
+    return (f'| {title} | {what} ({t["points_n"]} points) | {result} | {finish:.2f} s ({verdict} '
+            f'{t["limit_s"]:.1f}) | {1000 * t["path_max_rad"]:.1f} / '
+            f'{1000 * t["path_rms_rad"]:.1f} mrad ({100 * t["path_max_frac"]:.2f} / '
+            f'{100 * t["path_rms_frac"]:.2f} %) | '
+            f'{timing} | {segs} |')
+
+
+DENSE_HEADER = ('| bus | trajectory | result | finish (MoveIt limit) | path error max / RMS '
+                '(% of length) | timing error max joint1 / joint2 (mrad) | node\'s segments |\n'
+                '|---|---|---|---|---|---|---|')
+
+
+def report_dense(spec: Spec, r: dict, log_dir: pathlib.Path) -> None:
+    title = spec.title + ('' if r['sync_period_s'] is None
+                          else f', can.sync_period_s {r["sync_period_s"]:g}')
+    print(f'\n== {title}: MoveIt-like dense trajectories [{r.get("cores")} cores, load '
+          f'{r.get("load", float("nan")):.2f}]')
+    print(f'   {spec.line}; node at {r["rate_hz"]:g} Hz; one line transaction '
+          f'{1000 * r["transaction_s"]:.2f} ms; {DENSE_DURATION_S:g} s quintic, MoveIt limit '
+          f'{moveit_limit_s(DENSE_DURATION_S):.1f} s; header.stamp 0; no tolerances')
+    print(DENSE_HEADER)
+    for t in r['trajectories']:
+        print(dense_row(spec.title, t))
+    for t in r['trajectories']:
+        extra = []
+        if t.get('accepted_s') is not None:
+            extra.append(f'accepted {1000 * t["accepted_s"]:.1f} ms after sent')
+        if 'feedback_error_max_rad' in t:
+            extra.append('feedback |error| max ' + ' / '.join(
+                f'{1000 * t["feedback_error_max_rad"][d]:.1f}' for d in DRIVES) + ' mrad')
+        if 'timing_at_s' in t:
+            extra.append('timing max at ' + ' / '.join(
+                '-' if t['timing_at_s'][d] is None else f'{t["timing_at_s"][d]:.2f}'
+                for d in DRIVES) + ' s')
+        if t.get('samples_dropped'):
+            extra.append(f'{t["samples_dropped"]} samples left out (late)')
+        if t.get('samples_lag_s', 0) > 0:
+            extra.append(f'NOT VALID: the samples show a joint at its goal '
+                         f'{t["samples_lag_s"]:.2f} s after the result (this process fell '
+                         'behind the samples)')
+        for w in t.get('warnings', []):
+            extra.append(f'node: {w[-200:]}')
+        if extra:
+            print(f'   {t["kind"]} {t["dt_s"]:g} s: ' + '; '.join(extra))
+    if 'error' in r:
+        print(f'   FAILED: {r["error"]} (node log: {log_dir / (r["tag"] + "_node.log")})')
+
+
+# ------------------------------------------------------------------ two nodes, one trajectory
+def run_two_node(ros: RosClient, log_dir: pathlib.Path, sample_hz: float,
+                 steps_s: list[float]) -> dict:
+    """One four-joint trajectory, each node its two joints' part with one header.stamp."""
+    results: dict[str, Any] = {'part': 'two_node', 'vendor': 'two_node', 'nodes': {},
+                               'trajectories': []}
+    buses: dict[str, Bus] = {}
+    try:
+        for key in TWO_NODE:
+            buses[key] = bring_up(VENDORS[key], ros, log_dir, f'two_node_{key}', sample_hz, [])
+            results['nodes'][key] = {'rate_hz': buses[key].rate_hz,
+                                     'transaction_s': buses[key].transaction_s,
+                                     'transaction_what': buses[key].transaction_what,
+                                     'joints': buses[key].joints}
+        # one poll period of each node plus one line transaction (the slower line's: RD4)
+        bound = sum(1.0 / b.rate_hz for b in buses.values()) + max(
+            b.transaction_s for b in buses.values())
+        results['bound_s'] = bound
+        for dt in steps_s:
+            res: dict[str, Any] = {'dt_s': dt, 'duration_s': TWO_NODE_DURATION_S,
+                                   'limit_s': moveit_limit_s(TWO_NODE_DURATION_S)}
+            results['trajectories'].append(res)
+            try:
+                res.update(_two_node_one(buses, ros, dt, sample_hz, bound))
+            except Exception as exc:  # noqa: BLE001
+                res['error'] = f'{type(exc).__name__}: {exc}'
+                results['error'] = f'{dt:g} s: {res["error"]}'
+                break
+        if 'error' not in results:
+            for b in buses.values():
+                b.disable(ros)
+        results['load'] = os.getloadavg()[0]
+        results['cores'] = os.cpu_count()
+    finally:
+        for b in reversed(list(buses.values())):
+            b.close(ros)
+    report_two_node(results, log_dir)
+    return results
+
+
+def _two_node_one(buses: dict[str, Bus], ros: RosClient, dt: float, sample_hz: float,
+                  bound: float) -> dict:
+    for b in buses.values():
+        b.still()
+    time.sleep(0.3)
+    now = time.monotonic()
+    axes = [(key, d) for key in TWO_NODE for d in DRIVES]        # columns of the trajectory
+    joints = [buses[key].joints[DRIVES.index(d)] for key, d in axes]
+    start = [buses[key].true_rad(d, now) for key, d in axes]
+    delta = []
+    for n in range(len(TWO_NODE)):
+        signs = away(start[2 * n:2 * n + 2])
+        delta += [s * x for s, x in zip(signs, LINE_RAD)]
+    points = line_points(start, delta, TWO_NODE_DURATION_S, dt)
+    marks = {key: buses[key].log_size() for key in TWO_NODE}
+    goals: dict[str, ActionGoal] = {}
+    try:
+        for key in TWO_NODE:               # the servers found before the stamp is taken
+            goals[key] = ActionGoal(ros, buses[key].bench.node_name)
+        # one stamp, ahead, as MoveIt gives every part of a stamped trajectory
+        stamp_ns = ros.node.get_clock().now().nanoseconds + int(TWO_NODE_LEAD_S * 1e9)
+        start_t = time.monotonic() + TWO_NODE_LEAD_S
+        for n, key in enumerate(TWO_NODE):
+            msg = trajectory_msg(joints, points, [2 * n, 2 * n + 1])
+            msg.header.stamp = Time(sec=stamp_ns // 1_000_000_000,
+                                    nanosec=stamp_ns % 1_000_000_000)
+            goals[key].send(FollowJointTrajectory.Goal(trajectory=msg))
+        results = {}
+        for key in TWO_NODE:
+            try:
+                results[key] = goals[key].result(
+                    start_t - time.monotonic() + moveit_limit_s(TWO_NODE_DURATION_S) + 20.0)
+            except RuntimeError:
+                raise RuntimeError(f'{key}: no result {time.monotonic() - start_t:.1f} s after '
+                                   'the stamp') from None
+    finally:
+        for g in goals.values():
+            g.close()
+    time.sleep(0.3)
+    t_end = max(g.result_t for g in goals.values())
+    samples, steps, dropped = {}, {}, 0
+    for key, d in axes:
+        kept, left = collect(buses[key].true[d], start_t - TWO_NODE_LEAD_S, t_end,
+                             1.0 / sample_hz)
+        steps[(key, d)] = kept
+        samples[(key, d)] = [(t, buses[key].convs[d].from_steps(x)) for t, x in kept]
+        dropped += left
+    out: dict[str, Any] = {'points_n': len(points), 'nodes': {}, 'samples_dropped': dropped}
+    t_from = min(g.sent_t for g in goals.values())
+    for n, key in enumerate(TWO_NODE):
+        g, r = goals[key], results[key]
+        node_samples = {d: samples[(key, d)] for d in DRIVES}
+        fig = polyline_figures(node_samples, DRIVES, [(p[1][2 * n], p[1][2 * n + 1])
+                                                      for p in points], t_from, g.result_t)
+        fig['timing_max_rad'] = {}
+        for i, d in enumerate(DRIVES):
+            own = [(p[0], p[1][2 * n + i]) for p in points]
+            fig['timing_max_rad'][d] = timing_error(node_samples[d], own, start_t, t_from,
+                                                    g.result_t)[0]
+        fig.update(merge_line(buses[key].log_since(marks[key])))
+        if r.error_code == 0:
+            fig['samples_lag_s'] = max(samples_lag(
+                node_samples[d], points[-1][1][2 * n + i],
+                1.5 / buses[key].convs[d].steps_per_unit, g.result_t)
+                for i, d in enumerate(DRIVES))
+        fig.update(error_code=r.error_code, error_string=r.error_string,
+                   finish_from_stamp_s=g.result_t - start_t, finish_from_sent_s=g.result_t
+                   - g.sent_t, sent_before_stamp_s=start_t - g.sent_t)
+        out['nodes'][key] = fig
+    # arrival at each point: when each axis passes the point's whole-step position
+    arrivals = []
+    for k in range(1, len(points)):
+        due = start_t + points[k][0]
+        at, missed, bracket = {}, [], 0.0
+        for c, (key, d) in enumerate(axes):
+            conv = buses[key].convs[d]
+            first, target = round(conv.to_steps(start[c])), round(conv.to_steps(points[k][1][c]))
+            if target == first:
+                continue                           # still its start step: nothing to pass
+            sign = 1.0 if conv.to_steps(points[-1][1][c]) > conv.to_steps(start[c]) else -1.0
+            hit = crossing(steps[(key, d)], target, sign)
+            if hit is None:
+                missed.append(f'{key}/{d}')
+            else:
+                at[f'{key}/{d}'] = hit[0] - due
+                bracket = max(bracket, hit[1])
+        spread = max(at.values()) - min(at.values()) if len(at) >= 2 and not missed else None
+        arrivals.append({'k': k, 'time_s': points[k][0], 'late_s': at, 'missed': missed,
+                         'axes': len(at) + len(missed), 'spread_s': spread,
+                         'bracket_s': bracket})
+    spreads = [a['spread_s'] for a in arrivals if a['spread_s'] is not None]
+    lates = [x for a in arrivals for x in a['late_s'].values()]
+    out.update(arrivals=arrivals, bound_s=bound,
+               spread_max_s=max(spreads, default=None),
+               spread_median_s=statistics.median(spreads) if spreads else None,
+               spread_points=len(spreads), over_bound=sum(s > bound for s in spreads),
+               missed_points=sum(bool(a['missed']) for a in arrivals),
+               late_min_s=min(lates, default=None), late_max_s=max(lates, default=None),
+               bracket_max_s=max((a['bracket_s'] for a in arrivals), default=None),
+               samples_lag_s=max(n.get('samples_lag_s', 0.0) for n in out['nodes'].values()),
+               samples={f'{key}/{d}': [(round(t - start_t, 4), x) for t, x in samples[(key, d)]]
+                        for key, d in axes})
+    return out
+
+
+TWO_NODE_HEADER = ('| points every | result X-PLUS MT; RD4 | finish from the stamp (MoveIt '
+                   'limit) | path error max / RMS, X-PLUS MT; RD4 | timing error max, 4 joints '
+                   '(mrad) | arrival spread max / median (points) | bound | over the bound | '
+                   'arrival vs the point\'s time |\n|---|---|---|---|---|---|---|---|---|')
+
+
+def two_node_row(t: dict) -> str:
+    if 'nodes' not in t:
+        return f'| {t["dt_s"]:g} s | **failed**: {t.get("error", "?")} | | | | | | | |'
+    nodes = [t['nodes'][k] for k in TWO_NODE]
+    results = '; '.join(code_name(n['error_code']) if n['error_code'] == 0 else
+                        f'**{code_name(n["error_code"])}**: {n["error_string"]}' for n in nodes)
+    finish = '; '.join(f'{n["finish_from_stamp_s"]:.2f}' for n in nodes)
+    over = any(n['finish_from_stamp_s'] > t['limit_s'] for n in nodes)
+    path = '; '.join(f'{1000 * n["path_max_rad"]:.1f} / {1000 * n["path_rms_rad"]:.1f} mrad '
+                     f'({100 * n["path_max_frac"]:.2f} / {100 * n["path_rms_frac"]:.2f} %)'
+                     for n in nodes)
+    timing = ' / '.join(f'{1000 * n["timing_max_rad"][d]:.1f}' for n in nodes for d in DRIVES)
+    spread = ('-' if t['spread_max_s'] is None else
+              f'{1000 * t["spread_max_s"]:.1f} / {1000 * t["spread_median_s"]:.1f} ms '
+              f'({t["spread_points"]})')
+    late = ('-' if t['late_min_s'] is None else
+            f'{1000 * t["late_min_s"]:+.0f}..{1000 * t["late_max_s"]:+.0f} ms')
+    if t.get('samples_lag_s', 0) > 0:
+        results += f' (samples late by {t["samples_lag_s"]:.2f} s: figures **not valid**)'
+    return (f'| {t["dt_s"]:g} s ({t["points_n"] - 1} points) | {results} | {finish} s '
+            f'({"**over**" if over else "within"} {t["limit_s"]:.2f}) | {path} | {timing} | '
+            f'{spread} | {1000 * t["bound_s"]:.1f} ms | {t["over_bound"]}'
+            + (f', {t["missed_points"]} point(s) not reached' if t['missed_points'] else '')
+            + f' | {late} |')
+
+
+def report_two_node(r: dict, log_dir: pathlib.Path) -> None:
+    print(f'\n== Two nodes, one trajectory: X-PLUS MT + Lika RD4 [{r.get("cores")} cores, load '
+          f'{r.get("load", float("nan")):.2f}]')
+    for key, n in r['nodes'].items():
+        print(f'   {VENDORS[key].title}: {VENDORS[key].line}; node at {n["rate_hz"]:g} Hz; one '
+              f'line transaction {1000 * n["transaction_s"]:.2f} ms')
+    if 'bound_s' in r:
+        print(f'   header.stamp {TWO_NODE_LEAD_S:g} s ahead, both parts; {TWO_NODE_DURATION_S:g}'
+              f' s quintic line, 2.0 / 1.0 rad per node; bound {1000 * r["bound_s"]:.1f} ms')
+    print(TWO_NODE_HEADER)
+    for t in r['trajectories']:
+        print(two_node_row(t))
+    for t in r['trajectories']:
+        for key, n in t.get('nodes', {}).items():
+            extra = [f'sent {n["sent_before_stamp_s"]:.3f} s before the stamp, result '
+                     f'{n["finish_from_sent_s"]:.2f} s after sent']
+            if n.get('segments') is not None:
+                extra.append(f'{n["points"]} points as {n["segments"]} segments (>= '
+                             f'{n["min_segment_s"]:.3g} s), plan within {n.get("merge_far")}')
+            extra += [f'node: {w[-200:]}' for w in n.get('warnings', [])]
+            print(f'   {t["dt_s"]:g} s, {key}: ' + '; '.join(extra))
+        if t.get('bracket_max_s') is not None:
+            print(f'   {t["dt_s"]:g} s: the two samples around a crossing at most '
+                  f'{1000 * t["bracket_max_s"]:.0f} ms apart; {t["samples_dropped"]} samples left '
+                  'out (late)' + (f'; NOT VALID: the samples show a joint at its goal '
+                                  f'{t["samples_lag_s"]:.2f} s after its result (this process '
+                                  'fell behind the samples)' if t['samples_lag_s'] > 0 else ''))
+        for a in t.get('arrivals', []):
+            if a['missed'] or (a['spread_s'] is not None and a['spread_s'] > t['bound_s']):
+                print(f'   {t["dt_s"]:g} s, point {a["k"]} ({a["time_s"]:g} s): '
+                      + ', '.join(f'{j} {1000 * x:+.0f} ms' for j, x in a['late_s'].items())
+                      + f' (samples {1000 * a["bracket_s"]:.0f} ms apart)'
+                      + (f'; never reached: {a["missed"]}' if a['missed'] else ''))
+    if 'error' in r:
+        print(f'   FAILED: {r["error"]} (node logs: {log_dir}/two_node_*_node.log)')
+
+
+def summary(runs: list[dict]) -> None:
+    """The dense and two-node figures of every bus again, in one table each."""
+    dense = [r for r in runs if r.get('part') == 'dense']
+    if dense:
+        print(f'\n== MoveIt-like dense trajectories, every bus ({DENSE_DURATION_S:g} s, MoveIt '
+              f'limit {moveit_limit_s(DENSE_DURATION_S):.1f} s)')
+        print(DENSE_HEADER)
+        for r in dense:
+            spec = VENDORS[r['vendor']]
+            title = spec.title + ('' if r.get('sync_period_s') is None
+                                  else f', SYNC {r["sync_period_s"]:g} s')
+            if not r.get('trajectories'):
+                print(f'| {title} | | **failed**: {r.get("error")} | | | | |')
+            for t in r.get('trajectories', []):
+                print(dense_row(title, t))
+    for r in runs:
+        if r.get('part') == 'two_node':
+            print('\n== Two nodes (X-PLUS MT + Lika RD4), one trajectory, one stamp '
+                  f'{TWO_NODE_LEAD_S:g} s ahead ({TWO_NODE_DURATION_S:g} s, MoveIt limit '
+                  f'{moveit_limit_s(TWO_NODE_DURATION_S):.2f} s from the stamp)')
+            print(TWO_NODE_HEADER)
+            if not r.get('trajectories'):
+                print(f'| | **failed**: {r.get("error")} | | | | | | | |')
+            for t in r.get('trajectories', []):
+                print(two_node_row(t))
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('--vendor', nargs='+', choices=list(VENDORS), default=list(VENDORS))
@@ -524,11 +1206,26 @@ def main() -> int:
                     help="the simulators' true-position rate [Hz] (default 200)")
     ap.add_argument('--band', type=float, default=0.005,
                     help='arrival band, fraction of the axis\'s segment distance (default 0.005)')
-    ap.add_argument('--vector-sync-period', type=float, nargs='*', default=[0.01],
+    ap.add_argument('--vector-sync-period', type=float, nargs='*', default=None,
                     help='Vector Step also with can.sync_period_s = each of these [s] '
-                         '(interpolated position; default 0.01; none: only config/)')
+                         '(interpolated position; default 0.01, with --dense none; none: only '
+                         'config/)')
+    ap.add_argument('--dense', action='store_true',
+                    help='only the MoveIt-like dense trajectories (with --two-node: both)')
+    ap.add_argument('--two-node', action='store_true',
+                    help='only the two-node trajectory, X-PLUS MT + RD4 (with --dense: both)')
+    ap.add_argument('--dt', type=float, nargs='+', default=[0.1, 0.05],
+                    help='--dense: a point every S seconds (default 0.1 0.05)')
+    ap.add_argument('--kinds', nargs='+', choices=DENSE_KINDS, default=list(DENSE_KINDS),
+                    help='--dense: line, arc (default both)')
+    ap.add_argument('--two-node-dt', type=float, nargs='+', default=[0.8, 0.1],
+                    help='--two-node: a point every S seconds (default 0.8 0.1)')
     ap.add_argument('--json', type=pathlib.Path, help='write every figure to this file')
     args = ap.parse_args()
+    sparse = not (args.dense or args.two_node)
+    syncs = args.vector_sync_period
+    if syncs is None:
+        syncs = [0.01] if sparse else []
     log_dir = pathlib.Path(tempfile.mkdtemp(prefix='bench_traj_'))
     domain_lock = reserve_domain()      # noqa: F841 - held until the end of the run
     print(f'trajectory benchmark: {machine()}; ROS_DOMAIN_ID '
@@ -536,27 +1233,39 @@ def main() -> int:
           f'arrival band {100 * args.band:g} % of the segment distance (>= 1 step); logs '
           f'{log_dir}')
     jobs = []
-    for key in args.vendor:
-        jobs.append((key, None))
-        if key == 'vector_step':
-            jobs += [(key, s) for s in args.vector_sync_period]
+    for part in (['sparse'] if sparse else []) + (['dense'] if args.dense else []):
+        for key in args.vendor:
+            jobs.append((part, key, None))
+            if key == 'vector_step':
+                jobs += [(part, key, s) for s in syncs]
+    if args.two_node:
+        jobs.append(('two_node', None, None))
     results: dict[str, Any] = {'machine': machine(), 'runs': []}
     failed = 0
     ros = RosClient('bench_trajectory')
     try:
-        for key, sync in jobs:
+        for part, key, sync in jobs:
             try:
-                results['runs'].append(run_vendor(VENDORS[key], ros, log_dir, args.trajectories,
-                                                  args.sample_rate, args.band, sync))
+                if part == 'sparse':
+                    r = run_vendor(VENDORS[key], ros, log_dir, args.trajectories,
+                                   args.sample_rate, args.band, sync)
+                elif part == 'dense':
+                    r = run_dense(VENDORS[key], ros, log_dir, args.sample_rate, args.kinds,
+                                  args.dt, sync)
+                else:
+                    r = run_two_node(ros, log_dir, args.sample_rate, args.two_node_dt)
+                results['runs'].append(r)
+                failed += 'error' in r
             except Exception as exc:  # noqa: BLE001 - report, go on with the next one
                 failed += 1
-                print(f'\n== {key}{"" if sync is None else f" sync {sync:g}"}: FAILED: {exc} '
-                      f'(logs in {log_dir})', flush=True)
-                results['runs'].append({'vendor': key, 'sync_period_s': sync,
+                what = f'{key or part}{"" if sync is None else f" sync {sync:g}"}'
+                print(f'\n== {what} ({part}): FAILED: {exc} (logs in {log_dir})', flush=True)
+                results['runs'].append({'part': part, 'vendor': key, 'sync_period_s': sync,
                                         'error': str(exc)})
             sys.stdout.flush()
     finally:
         ros.close()
+    summary(results['runs'])
     if args.json:
         args.json.write_text(json.dumps(results, indent=1, default=str))
     return 1 if failed else 0
