@@ -34,7 +34,9 @@ class Rig:
         self.node = self.start('node', [executable('stepper_drivers', 'xplus_mt_node'),
                                         '--ros-args', '--params-file',
                                         str(CONFIG / 'xplus_mt.yaml'), '-p', f'port:={port}',
-                                        '-p', 'publish_rate_hz:=20.0'])
+                                        '-p', 'publish_rate_hz:=20.0',
+                                        # the shipped params refuse raw writes
+                                        '-p', 'drives.axis1.allow_raw_write:=true'])
         for d in ('axis1', 'axis2'):
             self.ros.subscribe(DriveStatus, f'{NODE}/{d}/status')
             self.status(d, lambda m: m.connected, 30.0)

@@ -29,7 +29,8 @@ class Bench(DriveBench):
         '-p', 'publish_rate_hz:=20.0',
         # the simulator is a Python process on a shared 2-core machine: a reply can be later
         # than the 0.1 s a real line needs (config/rd4.yaml), and no test is about that
-        '-p', 'timeout_s:=0.3')
+        '-p', 'timeout_s:=0.3',
+        '-p', 'drives.axis1.allow_raw_write:=true')   # the shipped params refuse raw writes
 
     def __init__(self, procs, ros, tmp_path, node_args=()):
         self.port = str(tmp_path / 'rd4.pty')
@@ -280,3 +281,27 @@ def test_a_unit_that_does_not_answer_leaves_the_others_working(procs, ros, tmp_p
     assert 'axis3' in link.message and 'axis1' not in link.message
     r = bench.call('axis3', 'enable', SetBool.Request(data=True), SetBool)
     assert not r.success and 'DISCONNECTED' in r.message
+
+
+def test_a_wrong_identity_is_not_driven_and_fault_reset_checks_it_again_at_once(bench):
+    """Another device answers at node 1 (valid CRC, its own contents: garbage_reads): not the
+    RD4, so axis1 is not driven and its status says when the node checks again. Once the RD4
+    answers again, fault_reset checks at once (not at the next check, 30 s on), no restart."""
+    bench.inject('axis1', 'garbage_reads', code=0, value=7)    # every read, until clear_fault
+    st = bench.status('axis1', lambda m: m.not_driven, timeout_s=15.0, what='axis1 not driven')
+    assert not st.connected and 'is not the configured RD4' in st.not_driven, st.not_driven
+    assert 'checked again at ' in st.not_driven, st.not_driven
+    assert st.not_driven.endswith(', in 30 s; fault_reset checks at once)'), st.not_driven
+    r = bench.call('axis1', 'enable', SetBool.Request(data=True), SetBool)
+    assert not r.success and 'drive is not driven' in r.message, r.message
+    r = bench.call('axis1', 'fault_reset')                      # still the other device
+    assert not r.success and 'still not driven' in r.message, r.message
+    assert r.message.endswith(', in 60 s; fault_reset checks at once)'), r.message
+    bench.inject('axis1', 'clear_fault')                        # the RD4 answers again
+    t0 = time.monotonic()
+    r = bench.call('axis1', 'fault_reset')
+    assert r.success and 'the identity matches again: driven' in r.message, r.message
+    st = bench.status('axis1', lambda m: m.connected and not m.not_driven, timeout_s=5.0,
+                      what='axis1 driven again')
+    assert time.monotonic() - t0 < 10.0 and not st.enabled
+    assert bench.status('axis2').connected

@@ -26,7 +26,8 @@ class Bench(DriveBench):
     node_extra_args = (
         '-p', 'publish_rate_hz:=20.0',
         '-p', 'timeout_s:=0.25',        # generous: the simulator shares 2 busy cores
-        *[a for d in DRIVES for a in ('-p', f'drives.{d}.busy_poll_period_s:=0.05')])
+        *[a for d in DRIVES for a in ('-p', f'drives.{d}.busy_poll_period_s:=0.05')],
+        '-p', 'drives.axis1.allow_raw_write:=true')   # the shipped params refuse raw writes
     keep_status = True
 
     def __init__(self, procs, ros, tmp_path, line_timing=False, node_args=()):
@@ -284,3 +285,26 @@ def test_bad_parameter_fails_start_up_with_one_line(procs, tmp_path):
     last = bad_parameter_output(procs, tmp_path, 'xmind_k', 'method: -3 ', 'method: 35 ')[-1]
     assert last.startswith('xmind_k_node: parameter drives.axis2.homing.method: 35 is not an '
                            'X-MIND K method (allowed: 3 = zero search'), last
+
+
+def test_line_noise_during_reconnects_is_a_link_error_not_another_device(bench):
+    """The field's fault soak: for seconds every answer has one character garbled
+    ('02?S,RS,D2' for '02QS,RS,D2'), then the line is clean. The drives are DISCONNECTED
+    meanwhile and reconnected on the normal back-off, never "not driven", and they are back
+    without a restart."""
+    histories = {d: bench.ros.history[f'{NODE}/{d}/status'] for d in DRIVES}
+    bench.inject('', 'corrupt_reply')                         # every answer, until link_ok
+    for d in DRIVES:
+        bench.status(d, lambda m: not m.connected, timeout_s=15.0,
+                     what=f'{d}: the link lost to the noise')
+    start = {d: len(h) for d, h in histories.items()}
+    time.sleep(4.0)        # reconnects every 0.2 s, doubling to 1.6 s: several attempts
+    bench.inject('', 'link_ok')
+    for d in DRIVES:
+        st = bench.status(d, lambda m: m.connected, timeout_s=15.0,
+                          what=f'{d} back without a restart')
+        assert st.not_driven == '' and st.link_reconnects >= 1
+        noisy = histories[d][start[d]:]
+        assert noisy and all(m.not_driven == '' for m in noisy), [m.not_driven for m in noisy]
+    log = bench.node.output()
+    assert "02?S,RS,D2" in log and 'not driven' not in log, log[-3000:]

@@ -28,6 +28,7 @@ class Bench(DriveBench):
     """A simulator and a node on a free port, plus helpers to reach them through ROS."""
 
     vendor = 'xplus_mt'
+    node_extra_args = ('-p', 'drives.axis1.allow_raw_write:=true')   # shipped: refused
 
     def __init__(self, procs, ros, tmp_path, node_args=()):
         self.port = free_port()

@@ -280,6 +280,7 @@ class Cia402Device:
         self.name = name
         self.controlword: int | None = None   # last value commanded, None before the first
         self._written_at = 0.0
+        self.set_point_sent_t: float | None = None   # the last new set point's write (bit 4 up)
 
     # Low level ---------------------------------------------------------------------------------
     def write(self, controlword: int) -> None:
@@ -389,6 +390,7 @@ class Cia402Device:
             self.write(idle)
             yield from self.wait_for(lambda s: not set_point_acknowledged(s), timeout_s)
         self.write(cw)
+        self.set_point_sent_t = self._written_at
         met, sw = yield from self.wait_for(set_point_acknowledged, timeout_s)
         self.write(idle)
         if not met:

@@ -47,8 +47,10 @@ class RefusedError(DriveError):
 
 class IdentityError(DriveError):
     """The device at this address is not the configured drive, or lacks what the driver needs
-    (wrong model, a manufacturer object missing). Raised by `connect()`; the node does not drive
-    it and, after a few attempts, stops retrying; the message names the register or object."""
+    (wrong model, a manufacturer object missing), as a well-formed answer says. Raised by
+    `connect()`; the node does not drive it and checks again on a slow back-off (supervisor
+    IDENTITY_RECHECK_S); the message names the register or object. An answer that breaks the
+    protocol's format (garbled, wrong length or field count, bad CRC) is a LinkError."""
 
 
 def is_steps(result: Any) -> bool:
@@ -218,6 +220,9 @@ class Drive(abc.ABC):
     # take "enabled, no alarm" from it instead of reading it on the wire first (the bus owner
     # sets its poll period here). 0: read it on the wire before every motion.
     state_fresh_s: float = 0.0
+    # time.monotonic() at which the last move_to's motion frame went out, where move_to goes on
+    # after it (a CiA 402 set-point handshake waits for the acknowledge); None: at its end.
+    motion_sent_t: float | None = None
 
     def __init__(self, bus: Bus, name: str, params: Mapping[str, Any]):
         self.bus = bus
@@ -241,6 +246,12 @@ class Drive(abc.ABC):
     def disable(self) -> None: ...
 
     # Motion -----------------------------------------------------------------------------------
+    def until_ready_for_move(self) -> Steps[bool] | None:
+        """Step-wise, until the drive can take a new move at once (a drive that takes no command
+        while it runs waits for the run that is about to end); None: ready now. The trajectory
+        follower times a move from then."""
+        return None
+
     def move_time_s(self) -> float:
         """What one `move_to` costs on the bus before the drive runs (its transactions),
         estimated from the line settings: the trajectory follower makes its segments long

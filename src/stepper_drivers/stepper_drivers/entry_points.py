@@ -18,6 +18,7 @@ def run(exe: str, argv: list[str] | None = None) -> int:
     import rclpy
     from rclpy.signals import SignalHandlerOptions
 
+    from . import dds_security
     from .node import DriveNode
     from .params import ParameterError, declare_all, non_ros_args
 
@@ -38,6 +39,12 @@ def run(exe: str, argv: list[str] | None = None) -> int:
     if extra:
         print(f'{exe}: unexpected arguments {extra}; usage: {exe} --ros-args --params-file '
               'FILE.yaml', file=sys.stderr)
+        return 2
+    # SROS2 asked for where the middleware has no security plugins: one line, not the rmw's
+    # error after rcl's log lines (dds_security.py)
+    insecure = dds_security.startup_problem()
+    if insecure:
+        print(f'{exe}: {insecure}', file=sys.stderr, flush=True)
         return 2
     rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
     try:

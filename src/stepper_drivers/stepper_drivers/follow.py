@@ -36,6 +36,11 @@ from .trajectory import (JointLimits, Segment, Trajectory, TrajectoryError, alon
 logger = logging.getLogger(__name__)
 
 TICK_S = 0.02                 # how often a run checks tolerances and cancellation
+WAIT_STANDSTILL_S = 0.005     # a late axis's move waits for the segment before: checked this often
+# A late axis counts as at its point within this fraction of its segment's distance (at least
+# ARRIVED_STEPS): closer, it takes the next target at once
+ARRIVED_FRACTION = 0.005
+ARRIVED_STEPS = 2.0
 LEAD_SMOOTHING = 0.5          # weight of the newest measured lead of a move
 LEAD_MAX_S = 0.5              # a lead measured longer than this (a busy line) counts as this
 STREAM_PREPARE_S = 0.3        # interpolated axes: mode 7 set up before a trajectory for now
@@ -222,6 +227,7 @@ class Run:
     def _follow(self) -> Outcome:
         clock = self.follower.clock
         previous = dict(self.start_steps)
+        before: dict[str, float] = {}       # where each axis's last move started from
         # interpolated axes: the stream starts now, holding them, so they are in mode 7 when
         # the first segment begins
         self._streams = self.follower.stream(self)
@@ -235,23 +241,40 @@ class Run:
                 return problem
             if self._replaced_at is not None and clock() >= self._replaced_at:
                 return _aborted(SUCCESSFUL, REPLACED)
-            # The moves go out at once, back to back. An axis whose segment before still runs
-            # (it arrived late) takes the new target on the way where its drive can (position
-            # override: RD4, X-PLUS MT, Vector Step); a drive that cannot (X-MIND K) waits in
-            # its own move_to for the run that ends.
+            # The moves go out back to back. An axis that a snapshot since the segment's start
+            # shows still on its way to the point before (it arrived late), further than
+            # ARRIVED_FRACTION of that segment's distance, gets its move once it stands there,
+            # so that it passes the point; one that is there, or whose last snapshot is older
+            # (on a serial line up to a poll period: waiting for it would make every segment
+            # late), takes the new target at once (on the way where its drive can: RD4 position
+            # override, X-PLUS MT and Vector Step change set immediately). A drive that takes no
+            # command while it runs (X-MIND K) waits in until_ready_for_move for a run that ends.
             end_t = self.start_t + seg.end_s
-            for move in seg.moves:
-                if move.joint in self.streamed:
-                    continue
-                axis = self.follower.axes[move.joint]
-                self._jobs.append(axis.sup.submit(
-                    axis.drive_name, COMMAND,
-                    self._move_job(axis, move, previous[move.joint], seg_t, end_t),
-                    f'trajectory segment to {move.target_steps:g} steps', disarms=True))
-                previous[move.joint] = move.target_steps
+            waiting = [m for m in seg.moves if m.joint not in self.streamed]
+            while waiting:
+                for move in list(waiting):
+                    axis = self.follower.axes[move.joint]
+                    if clock() < end_t and self._still_on_the_way(
+                            axis, seg_t, previous[move.joint], before.get(move.joint)):
+                        continue
+                    self._jobs.append(axis.sup.submit(
+                        axis.drive_name, COMMAND,
+                        self._move_job(axis, move, previous[move.joint], seg_t, end_t),
+                        f'trajectory segment to {move.target_steps:g} steps', disarms=True))
+                    before[move.joint] = previous[move.joint]
+                    previous[move.joint] = move.target_steps
+                    waiting.remove(move)
+                if waiting:
+                    problem = self._check()
+                    if problem is not None:
+                        return problem
+                    self._cancel.wait(WAIT_STANDSTILL_S)
         problem = self._wait_until(self.end_t)
         if problem is not None:
             return problem
+        for joint in self.traj.joints:     # the end seen at once, not at the next poll
+            axis = self.follower.axes[joint]
+            axis.sup.poll_soon(axis.drive_name)
         if self._replaced_at is not None:
             return _aborted(SUCCESSFUL, REPLACED)
         # goal_time_tolerance 0: no time limit (JointTrajectoryController's meaning), here until
@@ -275,14 +298,25 @@ class Run:
                 return _aborted(GOAL_TOLERANCE_VIOLATED, '; '.join(far))
             self._cancel.wait(TICK_S)
 
+    @staticmethod
+    def _still_on_the_way(axis: Axis, seg_t: float, target: float, start: float | None) -> bool:
+        """A snapshot taken since seg_t shows the axis moving and short of `target` (its last
+        move's, from `start`) by more than ARRIVED_FRACTION of that move's distance."""
+        position, at = axis.sample()
+        if at < seg_t or not axis.moving():
+            return False
+        distance = abs(target - start) if start is not None else 0.0
+        return abs(target - position) > max(ARRIVED_STEPS, ARRIVED_FRACTION * distance)
+
     def _move_job(self, axis: Axis, move, from_steps: float, seg_t: float, end_t: float
                   ) -> Callable:
         clock = self.follower.clock
 
         def job():
+            ready = axis.drive.until_ready_for_move()    # (X-MIND K: its run ends first)
+            if ready is not None:
+                yield from ready
             t0 = clock()
-            # still moving: the drive may wait for its run to end first, which is no lead
-            learn = not axis.moving()
             # the drive runs after this move's own transactions, and not before the plan
             # expects it to (the moves of the other axes on the bus go out meanwhile)
             runs_t = max(t0 + axis.lead_s, seg_t + move.start_delay_s)
@@ -292,9 +326,11 @@ class Run:
             result = axis.drive.move_to(int(round(move.target_steps)), Motion(v, a, a))
             if is_steps(result):
                 result = yield from result
-            # its move's own transactions (checks, writes) before the drive runs: learned
-            if learn:
-                axis.lead_s += LEAD_SMOOTHING * (min(clock() - t0, LEAD_MAX_S) - axis.lead_s)
+            # its move's own transactions (checks, writes) before the drive runs, learned: up to
+            # its motion frame where the move goes on after it (a set-point handshake)
+            sent = axis.drive.motion_sent_t
+            lead = (sent if sent is not None and sent >= t0 else clock()) - t0
+            axis.lead_s += LEAD_SMOOTHING * (min(lead, LEAD_MAX_S) - axis.lead_s)
             return result
         return job
 

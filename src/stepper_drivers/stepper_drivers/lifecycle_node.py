@@ -51,7 +51,11 @@ class ManagedDriveNode(LifecycleNodeMixin, DriveNode):
         deadline = time.monotonic() + CONFIGURE_TIMEOUT_S
         while True:
             slots = [h.slot for h in self.handles.values()]
-            problems = [f'{s.name}: not driven: {s.not_driven}' for s in slots if s.not_driven]
+            # (the identity error alone: a failed configure closes the bus, nothing is checked
+            # again)
+            problems = [f'{s.name}: not driven: '
+                        + (s.last_error if s.identity_recheck else s.not_driven)
+                        for s in slots if s.not_driven]
             if problems:
                 break
             if all(s.connected and s.polls for s in slots):

@@ -387,9 +387,10 @@ class DriveNode(Node):
             sup.start()
 
     def publish_states(self, sup: BusSupervisor) -> None:
-        """Owner thread, after each poll cycle of its bus. A drive with publish waiters (a
-        service or action that changed it: `published`) has joint_states and its status
-        published now, whatever is due, and then its waiters are answered."""
+        """Owner thread, after each poll cycle of its bus, and after a poll that a publish
+        waiter awaited (a service or action that changed the drive: `published`): then
+        joint_states and that drive's status go out now, whatever is due, and its waiters are
+        answered."""
         handles = [self.handles[n] for n in sup.slots]
         waiting = [h for h in handles if h.publish_waiters]
         if not self.context.ok():
@@ -423,8 +424,7 @@ class DriveNode(Node):
         for h in handles:
             waiters, h.publish_waiters = h.publish_waiters, []
             for fut in waiters:
-                if not fut.done():
-                    fut.set_result(published)
+                _settle(fut, published)
 
     def _publish_diagnostics_due(self, now: float) -> None:
         """/diagnostics from the owner thread that finds it due, not from an executor timer:
@@ -738,18 +738,23 @@ class DriveNode(Node):
     async def published(self, *handles: DriveHandle, timeout_s: float = 2.0) -> bool:
         """Await the next snapshot of each drive and its publication: /joint_states and the
         drive's status that carry it have gone out (False: no snapshot within timeout_s, or
-        the link is lost). A service or action that changed a drive answers after this, so a
-        client that reads /joint_states after the answer sees the change."""
+        the link is lost). The drive is polled at once, and its snapshot published at once. A
+        service or action that changed a drive answers after this, so a client that reads
+        /joint_states after the answer sees the change."""
         futs = []
         for h in handles:
             fut: concurrent.futures.Future = concurrent.futures.Future()
 
             def polled(fresh: bool, h=h, fut=fut) -> None:   # owner thread, after h's poll
                 if fresh:
-                    h.publish_waiters.append(fut)            # publish_states answers it
-                elif not fut.done():
-                    fut.set_result(False)
+                    h.publish_waiters.append(fut)
+                    self.publish_states(h.sup)     # now, not at the end of the cycle
+                else:
+                    _settle(fut, False)
             h.sup.wait_poll(h.name, timeout_s, polled)
+            h.sup.poll_soon(h.name)
+            # no cycle within twice timeout_s (the bus shuts down: at once): not published
+            h.sup.after(2 * timeout_s, lambda fut=fut: _settle(fut, False))
             futs.append(fut)
         published = True
         for h, fut in zip(handles, futs):
@@ -855,15 +860,26 @@ class DriveNode(Node):
 
     async def srv_fault_reset(self, h: DriveHandle, req, resp):
         async def work():
+            if h.slot.identity_recheck:
+                # not driven for its identity: checked again now (a connect, nothing moves)
+                try:
+                    await self._await(h.sup.recheck(h.name))
+                except Cancelled:
+                    raise
+                except DriveError as e:
+                    if h.slot.not_driven:
+                        raise DriveError(f'still not driven: {h.slot.not_driven}') from None
+                    raise DriveError(f'checked again: {e}; DISCONNECTED, reconnecting') from None
+                await self.published(h)
+                return f'the identity matches again: driven, state {h.state.state.value}'
             self._check_link(h, 'fault_reset')
             remaining = await self._run_job(h, COMMAND, h.drive.fault_reset, 'fault_reset',
                                             motion=False)
             await self.published(h)
             if remaining:
                 raise DriveError(f'fault remains: {remaining}')
-            return h.state.state.value
-        return await self._respond(h, resp, work,
-                                   lambda st: f'{h.name}: fault cleared, state {st}')
+            return f'fault cleared, state {h.state.state.value}'
+        return await self._respond(h, resp, work, lambda text: f'{h.name}: {text}')
 
     async def srv_save_params(self, h: DriveHandle, req, resp):
         async def work():
@@ -1024,6 +1040,15 @@ class DriveNode(Node):
             t.start()
         for t in threads:
             t.join()
+
+
+def _settle(fut: concurrent.futures.Future, value: Any) -> None:
+    """Resolve fut with value unless it is resolved already (a timer and the owner may race)."""
+    try:
+        if not fut.done():
+            fut.set_result(value)
+    except concurrent.futures.InvalidStateError:
+        pass
 
 
 def _spin_commands(executor) -> None:

@@ -23,6 +23,7 @@ from rclpy.time import Time
 from std_msgs.msg import Header
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
+from .drive import DriveError
 from .follow import (INVALID_GOAL, INVALID_JOINTS, OLD_HEADER_TIMESTAMP, Axis, Follower, Run,
                      Tolerances)
 from .trajectory import JointLimits, Trajectory, TrajectoryError, build
@@ -262,7 +263,10 @@ class TrajectoryInterface:
         outcome = await self.node._await(run.done)
         # answered once joint_states and the statuses of the joints' drives that show the end
         # went out: a client (MoveIt's start state of the next plan) reads them after this
-        await self.node.published(*[self._handle(j) for j in run.traj.joints])
+        try:
+            await self.node.published(*[self._handle(j) for j in run.traj.joints])
+        except DriveError:
+            pass           # the node shuts down (Cancelled) or the link is lost: the outcome says
         result.error_code, result.error_string = outcome.code, outcome.text
         if outcome.status == 'succeeded':
             goal_handle.succeed()

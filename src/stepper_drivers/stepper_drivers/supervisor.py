@@ -59,8 +59,13 @@ CONNECT = 'connect'     # the owner's own connection attempt
 # The refusal of SCHED_FIFO is told once per process (every bus owner of a node asks for it).
 _priority_lock = threading.Lock()
 _priority_refusal_told = False
-# How often a connect that failed with IdentityError is tried before the node gives up on it.
-IDENTITY_ATTEMPTS = 3
+# A drive whose connect raised IdentityError (a well-formed answer naming another device) is
+# not driven, and connected again after IDENTITY_RECHECK_S, doubling up to
+# IDENTITY_RECHECK_MAX_S, for as long as the node runs (`recheck()`, fault_reset, at once): a
+# drive swapped or set right comes back without a restart. Noise is a LinkError, retried on the
+# reconnect back-off.
+IDENTITY_RECHECK_S = 30.0
+IDENTITY_RECHECK_MAX_S = 300.0
 # After this many commands or steps while a poll is overdue, one poll goes first (fairness).
 MAX_JOBS_BEFORE_OVERDUE_POLL = 4
 # A watchdog stop that could not be sent is tried again after this long [s].
@@ -119,8 +124,12 @@ class Slot:
         self.polls = 0               # successful read_state() results
         self.reconnects = 0          # successful connects, the first one included
         self.last_error = ''
-        self.not_driven = ''         # why the node gave up on this drive ('' while it tries)
-        self.identity_failures = 0
+        self.not_driven = ''         # why the node does not drive this drive ('' while it does)
+        # not driven for its identity: connected again at next_connect_t (IDENTITY_RECHECK_S);
+        # False with not_driven set: refused for as long as the node runs (refuse_drive)
+        self.identity_recheck = False
+        self.identity_backoff_s = IDENTITY_RECHECK_S
+        self.connect_waiters: list[concurrent.futures.Future] = []   # recheck() callers
         self.queue: collections.deque[Job] = collections.deque()
         self.active: Job | None = None
         self.active_steps = None     # generator of the running job
@@ -239,6 +248,14 @@ class BusSupervisor:
 
     def watchdog_armed(self, drive: str) -> bool:
         return self.slots[drive].velocity_deadline is not None
+
+    def poll_soon(self, drive: str) -> None:
+        """Poll `drive` next, ahead of its place on the grid: a caller that waits for what the
+        drive does now (the end of a trajectory, a service's answer) need not wait a period."""
+        with self._cv:
+            slot = self.slots[drive]
+            slot.next_poll_t = min(slot.next_poll_t, self.clock())
+            self._cv.notify()
 
     def wait_poll(self, drive: str, timeout_s: float, callback: Callable[[bool], None]) -> None:
         """Call callback(True) from the owner thread after the next poll of `drive`, or
@@ -370,8 +387,8 @@ class BusSupervisor:
                 if (slot.active is None or slot.active.polled) and now >= slot.next_poll_t \
                         and (due is None or slot.next_poll_t < due.next_poll_t):
                     due = slot
-            elif reconnect is None and not slot.not_driven and slot.active is None \
-                    and now >= slot.next_connect_t:
+            elif reconnect is None and (not slot.not_driven or slot.identity_recheck) \
+                    and slot.active is None and now >= slot.next_connect_t:
                 reconnect = slot
             active = slot.active
             if active is None:
@@ -441,7 +458,7 @@ class BusSupervisor:
                     times.append(s.next_poll_t)
                 if s.velocity_deadline is not None:
                     times.append(max(s.velocity_deadline, s.watchdog_retry_t))
-            elif not s.not_driven:
+            elif not s.not_driven or s.identity_recheck:
                 times.append(s.next_connect_t)
             times += [t for t, _ in s.poll_waiters]
         return min(times + [t for t, _ in self._timers])
@@ -697,19 +714,27 @@ class BusSupervisor:
         slot.identity, slot.state = identity, state
         why = self.on_connected(self, slot)
         if why:
-            slot.not_driven = why
+            with self._cv:
+                slot.not_driven, slot.identity_recheck = why, False
             slot.state = DriveState(state=State.DISCONNECTED)
             self.on_event('error', slot.name, f'not driven: {why}')
+            self._resolve_connect_waiters(slot, DriveError(f'not driven: {why}'))
             return
+        with self._cv:           # (refuse_drive may have refused it meanwhile: that stays)
+            again = slot.identity_recheck
+            if again:
+                slot.not_driven, slot.identity_recheck = '', False
+        slot.identity_backoff_s = IDENTITY_RECHECK_S
         slot.connected = True
-        slot.identity_failures = 0
         slot.reconnects += 1
         slot.last_error = ''
         slot.backoff_s = self.settings['reconnect_period_s']
         slot.next_poll_t = self.clock()
         identity_text = ', '.join(f'{k}={v}' for k, v in identity.items())
         self.on_event('info', slot.name, f'connected ({identity_text}); state '
-                      f'{state.state.value}, position {state.position_steps} steps')
+                      f'{state.state.value}, position {state.position_steps} steps'
+                      + ('; the identity matches again: driven' if again else ''))
+        self._resolve_connect_waiters(slot, None, identity)
         if slot.name in self.auto_enable and slot.reconnects == 1:
             self.submit(slot.name, COMMAND, slot.drive.enable, 'auto_enable', motion=False) \
                 .add_done_callback(lambda f, n=slot.name: self._auto_enabled(n, f))
@@ -721,33 +746,79 @@ class BusSupervisor:
             self.on_event('error', name, f'auto_enable failed: {fut.exception()}')
 
     def _connect_failed(self, slot: Slot, exc: Exception) -> None:
+        """The status first, then the recheck() callers, who read it."""
+        self._record_connect_failure(slot, exc)
+        self._resolve_connect_waiters(slot, exc)
+
+    def _record_connect_failure(self, slot: Slot, exc: Exception) -> None:
         if not isinstance(exc, DriveError):
             self.on_event('error', slot.name, f'connect: {exc!r}\n' + ''.join(
                 traceback.format_exception(exc)))
         if not any(s.connected for s in self.slots.values()):
             self._close_bus()
         period = self.settings['reconnect_period_s']
+        slot.last_error = str(exc)
         if isinstance(exc, IdentityError):
-            slot.identity_failures += 1
-            if slot.identity_failures >= IDENTITY_ATTEMPTS:
-                slot.not_driven = str(exc)
-                self.on_event('error', slot.name, f'not driven: {exc} ({slot.identity_failures}'
-                              ' attempts; fix the configuration or the drive, then restart '
-                              'the node)')
-                return
+            # Another device, or not the one configured: not driven, checked again slowly.
+            delay = slot.identity_backoff_s
+            slot.identity_backoff_s = min(delay * 2, IDENTITY_RECHECK_MAX_S)
+            slot.next_connect_t = self.clock() + delay
+            at = time.strftime('%H:%M:%S', time.localtime(time.time() + delay))
+            why = f'{exc} (checked again at {at}, in {delay:g} s; fault_reset checks at once)'
+            with self._cv:
+                if slot.not_driven and not slot.identity_recheck:
+                    return                    # refused meanwhile (refuse_drive): that stays
+                slot.not_driven, slot.identity_recheck = why, True
+            self.on_event('error', slot.name, f'not driven: {why}')
+            return
+        with self._cv:   # no identity read: the wrong device may be gone, or noise came
+            if slot.identity_recheck:
+                slot.not_driven, slot.identity_recheck = '', False
         if slot.backoff_s == period or slot.reconnects == 0:
             self.on_event('warning', slot.name, f'cannot connect on {self.bus.description}: '
                           f'{exc}; retrying')
-        slot.last_error = str(exc)
         slot.next_connect_t = self.clock() + slot.backoff_s
         slot.backoff_s = min(slot.backoff_s * 2, 8 * period)
 
     def refuse_drive(self, name: str, why: str) -> None:
         """From any thread: stop driving `name` (the owner drops its link at its next turn)."""
         with self._cv:
-            self.slots[name].not_driven = why
+            self.slots[name].not_driven, self.slots[name].identity_recheck = why, False
             self._cv.notify()
         self.on_event('error', name, f'not driven: {why}')
+
+    def recheck(self, name: str) -> concurrent.futures.Future:
+        """From any thread: connect a drive not driven for its identity now (fault_reset),
+        not at its next check. The future gets the identity, or the connect's error
+        (IdentityError: still not the drive); at once the identity of a connected drive, and
+        a DriveError for a drive refused for as long as the node runs."""
+        fut: concurrent.futures.Future = concurrent.futures.Future()
+        slot = self.slots[name]
+        self.after(0.0, lambda: self._recheck(slot, fut))
+        return fut
+
+    def _recheck(self, slot: Slot, fut: concurrent.futures.Future) -> None:
+        """Owner thread (the caller's once the bus shuts down: then it is cancelled)."""
+        if self._stopping:
+            fut.set_exception(Cancelled(f'{slot.name}: the node is shutting down'))
+        elif slot.connected:
+            fut.set_result(slot.identity)
+        elif slot.not_driven and not slot.identity_recheck:
+            fut.set_exception(DriveError(f'not driven: {slot.not_driven}'))
+        else:
+            slot.connect_waiters.append(fut)
+            slot.next_connect_t = min(slot.next_connect_t, self.clock())
+
+    def _resolve_connect_waiters(self, slot: Slot, exc: Exception | None,
+                                 result: Any = None) -> None:
+        waiters, slot.connect_waiters = slot.connect_waiters, []
+        for fut in waiters:
+            if fut.done():
+                continue
+            if exc is None:
+                fut.set_result(result)
+            else:
+                fut.set_exception(exc)
 
     # --------------------------------------------------------------------------- shutdown
     def _shutdown_drives(self, standstill_timeout_s: float, disable: set[str]) -> None:
@@ -765,6 +836,7 @@ class BusSupervisor:
                 self._cut_short(s, 'the node is shutting down')
             s.poll_steps = None
             self._resolve_waiters(s, False)
+            self._resolve_connect_waiters(s, Cancelled(f'{s.name}: the node is shutting down'))
         with self._cv:      # after the jobs: a job's time-out timer then finds it ended
             timers, self._timers = self._timers, []
         for _, callback in timers:

@@ -438,13 +438,24 @@ def test_a_snapshot_waits_for_the_rest_of_a_statusword_burst(bench, monkeypatch)
     reader.join(5.0)
     s = got['state']
     assert s.homed and s.position_steps == 500 and s.velocity_steps_s == 0.0
-    # a frame of a burst lost: one bounded wait (counted from the burst's first frame), then
-    # no wait per poll until the next change
+    # a frame of a burst late or lost: one bounded wait (counted from the burst's first frame),
+    # then what the late TxPDO carries is read by SDO (here the monitor plays the node, the
+    # simulator's link is cut: its answers are scripted), then no wait per poll until the next
+    # change
     monkeypatch.setattr(vs, 'BURST_SLACK_S', 0.3)
+    uploads = []
+
+    def upload(index, sub):
+        uploads.append((index, sub))
+        return {vm.RSTSFLG: 0, vm.ERROR_REGISTER: 0x81}[index]
+    monkeypatch.setattr(d.link, 'read', upload)
     burst(other, 500, 0, vm.RSTSFLG_HOMED, cobs=(0x181, 0x281, 0x381))
     newest_statusword(other)
-    assert snap(d).status_word == other
+    s = snap(d)
+    assert s.status_word == other
     assert time.monotonic() - d._statusword_seen[1] >= 0.3
+    assert uploads == [(vm.RSTSFLG, vm.AEC_SUB), (vm.ERROR_REGISTER, 0)]   # TxPDO4's objects
+    assert not s.homed                     # Rstsflg as uploaded, not as the old TxPDO4 said
     bench.monitor.send(0x701, b'\x05')
     start = time.monotonic()
     assert snap(d).status_word == other

@@ -75,7 +75,7 @@ def test_connect_reads_identity_and_never_enables(sim):
 
 def test_word_order_mismatch_is_refused(sim):
     bus, drive = make(sim, word_order='big')
-    with pytest.raises(IdentityError) as err:      # retrying cannot help: the node gives up
+    with pytest.raises(IdentityError) as err:      # not driven: checked again slowly
         drive.connect()
     assert 'LITTLE_ENDIAN_BIG_ENDIAN (1162) reads 1' in str(err.value)
     assert "word_order parameter is 'big'" in str(err.value)
@@ -461,7 +461,7 @@ def test_motion_needs_the_drive_enabled_on_the_wire(sim, axis1):
     assert sim.drives['axis1'].controlword == 0x000F  # nothing was commanded
 
 
-# --- Identity (drive.IdentityError: the node stops retrying) ---------------------------------
+# --- Identity (drive.IdentityError: not driven, checked again on the slow back-off) -----------
 @pytest.mark.parametrize('registers,message', [
     ({1081: 200}, r'STEP_REVOLUTION \(1081\) reads 200; an X-PLUS MT has 12800 only'),
     ({1162: 7}, r'LITTLE_ENDIAN_BIG_ENDIAN \(1162\) reads 7; an X-PLUS MT holds 1 \(little\) or '

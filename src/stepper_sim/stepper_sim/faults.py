@@ -4,7 +4,8 @@
   'ok'             replies pass
   'no_reply'       the request reaches the drive (a write takes effect) but the reply is lost
   'late_reply'     replies are delivered delay_s late (in order)
-  'corrupt_reply'  reply bytes are garbled (default: every byte XOR 0xFF)
+  'corrupt_reply'  reply bytes are garbled (default: every byte XOR 0xFF; `garble_one`: one
+                   character of each reply, as line noise does)
   'cut'            every connection is closed and new ones are refused until the mode is 'ok'
 Serial simulators check it before answering; TCP simulators put a `FaultyTcpProxy` in front of
 their server. Drive faults are vendor-specific and live in each simulator.
@@ -30,6 +31,15 @@ MODES = (OK, NO_REPLY, LATE_REPLY, CORRUPT_REPLY, CUT)
 def invert_bytes(data: bytes) -> bytes:
     """Default corruption: every bit flipped, so any framed protocol sees a bad frame."""
     return bytes(b ^ 0xFF for b in data)
+
+
+def garble_one(data: bytes, index: int = 2) -> bytes:
+    """One character of a reply replaced by '?' (or 0xBF where it was '?'): the reply keeps its
+    length and framing but breaks its protocol's format at byte `index` (2: an X-MIND K code,
+    the protocol id of a Modbus TCP header, the index of an SDO answer)."""
+    if len(data) <= index:
+        return data
+    return data[:index] + (b'\xbf' if data[index] == 0x3F else b'?') + data[index + 1:]
 
 
 class LinkFaults:

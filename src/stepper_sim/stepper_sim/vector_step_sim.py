@@ -52,6 +52,7 @@ import canopen
 from stepper_drivers.vendors import vector_step_map as vm
 
 from .axis import HOME, LIMIT_NEG, LIMIT_POS, SimAxis
+from .faults import garble_one
 from .vector_step_drive import AecDrive, FRA, OE, QSA, RTSO, SO, SOD
 from .vector_step_nmt import NMT_INITIALISING, NMT_OPERATIONAL, SYNC_CONFIRM_S, NmtSlave
 from .vector_step_pdo import PdoEngine, Pdo
@@ -120,6 +121,8 @@ class VectorStepNode(NmtSlave, SdoServer, PdoEngine, AecDrive):
         self.local._write_callbacks.remove(self.local.nmt.on_write)
         self.local.add_read_callback(self._on_read)
         self.local.add_write_callback(self._on_write)
+        self.garble_sdo = False          # corrupt_reply: one character of each SDO answer
+        self.local.sdo.send_response = self._send_sdo_response
         self.axis = SimAxis(limit_neg_steps=cfg.limit_neg_steps,
                             limit_pos_steps=cfg.limit_pos_steps,
                             home_switch_steps=cfg.home_switch_steps,
@@ -254,8 +257,12 @@ class VectorStepNode(NmtSlave, SdoServer, PdoEngine, AecDrive):
         if kind in ('cut', 'no_reply'):
             self.link_cut = True
             return 'node silent (no heartbeat, no SDO, no PDO) until link_ok'
+        if kind == 'corrupt_reply':
+            self.garble_sdo = True
+            return ('one character of each SDO answer garbled (its index: the answer does not '
+                    'fit the request) until link_ok')
         if kind == 'link_ok':
-            self.link_cut = False
+            self.link_cut = self.garble_sdo = False
             if self._stored(vm.PRODUCER_HEARTBEAT_TIME):
                 self.heartbeat_due = time.monotonic()
             return 'node answers again'
@@ -266,7 +273,13 @@ class VectorStepNode(NmtSlave, SdoServer, PdoEngine, AecDrive):
             return 'power cycle: boot-up follows'
         raise ValueError(f'unknown fault kind {kind!r}; kinds: drive_fault, clear_fault, '
                          'power_stage_blocked, power_stage_ok, warning, emcy, nvram_fault, '
-                         'nvram_ok, cut, no_reply, link_ok, reboot')
+                         'nvram_ok, cut, no_reply, corrupt_reply, link_ok, reboot')
+
+    def _send_sdo_response(self, response: bytes) -> None:
+        """canopen's SdoServer.send_response, with the corrupt_reply fault."""
+        if self.garble_sdo:
+            response = garble_one(bytes(response))
+        self.local.sdo.network.send_message(self.local.sdo.tx_cobid, response)
 
 
 # TxPDO2..4 (CiA 301 pre-defined connection set: 0x280, 0x380, 0x480 + node-ID)

@@ -45,7 +45,7 @@ from pymodbus.simulator import DataType, SimData, SimDevice
 
 from stepper_drivers.vendors import xplus_mt_map as xm
 
-from .faults import LATE_REPLY, OK, FaultyTcpProxy, LinkFaults
+from .faults import LATE_REPLY, OK, FaultyTcpProxy, LinkFaults, garble_one
 from .xplus_mt_device import LOST_REPLY_HOLD_S, XplusMtDevice, XplusMtDriveConfig
 
 __all__ = ['XplusMtDevice', 'XplusMtDriveConfig', 'XplusMtSim', 'build', 'main']
@@ -134,7 +134,7 @@ class XplusMtSim:
         self.line_timing = bool(line_timing)
         self.reply_latency_s = reply_latency_s
         self.tick_s = tick_s
-        self.link = LinkFaults()
+        self.link = LinkFaults(corrupt=garble_one)     # corrupt_reply: one character
         self.drives: dict[str, XplusMtDevice] = {
             d.name: XplusMtDevice(d, word_order=word_order, storage_dir=storage_dir,
                                   strict=strict, clock=clock) for d in drives}

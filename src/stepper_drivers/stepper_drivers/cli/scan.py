@@ -377,6 +377,12 @@ def scan_xmind_k(args, deadline: Deadline) -> list[BusResult]:
             if answer is None:
                 progress.step(f'address {address:02d}')
                 continue
+            if answer.code == 'N':           # §4.4.2: a garbled request, or not an X-MIND K
+                found.append(Found(address, {'answer': f'{address:02d}N to QS,RS'},
+                                   notes=[f'address {address:02d}: answered N to QS,RS, which '
+                                          'every X-MIND K answers (§4.3)']))
+                progress.step(f'address {address:02d}', len(found))
+                continue
             found.append(_xmind_found(bus, address, answer.args[1], xk, args.answer_delay_ms))
             progress.step(f'address {address:02d}', len(found))
     finally:
@@ -398,13 +404,13 @@ def _xmind_found(bus, address: int, rs: str, xk, rd_ms: float) -> Found:
     for preset in ('RD', 'IN'):
         try:
             a = bus.request(xk.Frame(address, 'QS', (preset,)), rd_ms=rd_ms, tries=2)
-            if a is not None:
+            if a is not None and a.code != 'N':
                 identity[preset] = str(a.args[1])
         except DriveError:
             pass
     try:
         a = bus.request(xk.Frame(address, 'QE'), rd_ms=rd_ms, tries=2)
-        if a is not None:
+        if a is not None and a.code != 'N':
             identity['QE'] = f'{a.args[0]:02d},{a.args[1]:03d}'
     except DriveError:
         pass

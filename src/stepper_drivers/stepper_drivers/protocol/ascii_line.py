@@ -1,7 +1,8 @@
 """One request at a time on a half-duplex ASCII serial line (RS-485 master side). No ROS.
 
 `AsciiLine` opens any pyserial URL (`/dev/ttyUSB0`, a pty path, `socket://host:port`,
-`loop://`) with `serial.serial_for_url`, writes one terminated string in a single write (the
+`loop://`) with `serial.serial_for_url` (then `serial_port.prepare`: low-latency mode, and the
+kernel's RS-485 mode with `rs485`), writes one terminated string in a single write (the
 characters of a string go back to back, X-MIND K manual §3) and reads the one answer:
 
 - the answer's first character must arrive by `first_byte_timeout_s` after the write, else the
@@ -24,6 +25,8 @@ from typing import Callable
 
 import serial
 
+from . import serial_port
+
 logger = logging.getLogger(__name__)
 
 
@@ -34,7 +37,8 @@ class LineError(Exception):
 class AsciiLine:
     def __init__(self, url: str, *, baudrate: int = 9600, bytesize: int = 8, parity: str = 'N',
                  stopbits: float = 1, terminator: bytes = b'\r', margin_s: float = 0.0,
-                 char_time_s: float | None = None, local_echo: bool = False):
+                 char_time_s: float | None = None, local_echo: bool = False,
+                 rs485: bool = False):
         self.url = url
         self.settings = dict(baudrate=baudrate, bytesize=bytesize, parity=parity,
                              stopbits=stopbits)
@@ -43,6 +47,7 @@ class AsciiLine:
         self.char_time_s = char_time_s if char_time_s is not None else \
             (1 + bytesize + (parity != 'N') + stopbits) / baudrate
         self.local_echo = local_echo     # adapters that hear their own transmission
+        self.rs485 = rs485               # the kernel's RS-485 mode (serial_port.set_rs485)
         self._port: serial.SerialBase | None = None
         self._free_at = 0.0              # time.monotonic() when the next string may leave
 
@@ -64,6 +69,11 @@ class AsciiLine:
         except (serial.SerialException, ValueError, OSError) as e:
             self._port = None
             raise LineError(f'cannot open {self.description}: {e}') from None
+        try:
+            serial_port.prepare(self._port, self.url, rs485=self.rs485)
+        except serial_port.PortSetupError as e:
+            self.close()
+            raise LineError(str(e)) from None
         self._free_at = 0.0
 
     def close(self) -> None:

@@ -6,8 +6,10 @@ SYNC every `sync_period_s` (the drives' 0x1006 watchdog) and a heartbeat of its 
 (`master_node_id`, every `master_heartbeat_ms`; the drives' 0x1016 consumer), both python-can
 periodic tasks that end with the bus or the process. Frames that do not fit what a subscribed
 COB-ID carries (length, heartbeat state) are dropped, counted as link errors and logged in one
-line (`CheckedNetwork`). Every drive on the bus is a `RemoteDrive` (a `canopen.BaseNode402` plus
-what the library leaves to the application):
+line (`CheckedNetwork`); so are the error frames the interface reports, which canopen ignores
+(`error_frames`, and `bus_off` where SocketCAN's encoding tells it; `ErrorFrameListener`).
+Every drive on the bus is a `RemoteDrive` (a `canopen.BaseNode402` plus what the library leaves
+to the application):
   - a boot-up latch armed before an NMT reset (NmtMaster.wait_for_bootup() only looks at the
     last state received, so a heartbeat right behind the boot-up hides it: transports.md A5.3),
   - a heartbeat consumer with a deadline (the library has none: A5.4),
@@ -22,6 +24,7 @@ No rclpy here.
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import logging
 import socket
@@ -33,7 +36,7 @@ from typing import Any, Callable
 import can
 import canopen
 from canopen.emcy import EmcyError
-from canopen.objectdictionary import ODVariable
+from canopen.objectdictionary import ODVariable, ObjectDictionaryError
 from canopen.sdo.base import SdoVariable
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
@@ -58,6 +61,19 @@ NMT_STATES = {0x00: 'BOOT-UP', 0x04: 'STOPPED', 0x05: 'OPERATIONAL', 0x7F: 'PRE-
 SYNC_COB_ID = 0x080            # 0x1005 default ("0x80 or 0x80000080")
 PERIODIC_JOIN_MARGIN_S = 0.5   # close() waits a cyclic task's period plus this for its thread
 GARBAGE_LOG_PERIOD_S = 10.0    # one log line per COB-ID and period for frames that do not fit
+# Error frames in SocketCAN's encoding (linux/can/error.h): the error class bits in the CAN ID,
+# controller details in data[1]. python-can's socketcan and socketcand interfaces deliver them so
+# (is_error_frame); other interfaces encode theirs in their own way: counted, not decoded.
+SOCKETCAN_ERROR_INTERFACES = ('socketcan', 'socketcand')
+CAN_ERR_CRTL = 0x004
+CAN_ERR_BUSOFF = 0x040
+CAN_ERR_CLASSES = {0x001: 'TX timeout', 0x002: 'lost arbitration', CAN_ERR_CRTL: 'controller',
+                   0x008: 'protocol violation', 0x010: 'transceiver', 0x020: 'no ACK',
+                   CAN_ERR_BUSOFF: 'BUS-OFF', 0x080: 'bus error',
+                   0x100: 'controller restarted'}
+CAN_ERR_CRTL_STATES = {0x01: 'RX overflow', 0x02: 'TX overflow', 0x04: 'RX warning',
+                       0x08: 'TX warning', 0x10: 'RX error passive', 0x20: 'TX error passive',
+                       0x40: 'error active again'}
 MASTER = '(this node)'         # CanBus._node_ids value of the node's own heartbeat node-ID
 
 
@@ -81,6 +97,7 @@ class CheckedNetwork(canopen.Network):
     def __init__(self, bus: 'CanBus'):
         super().__init__()
         self.owner = bus
+        self.listeners.append(ErrorFrameListener(bus))
 
     def notify(self, can_id: int, data: bytearray, timestamp: float) -> None:
         check = self.owner.frame_checks.get(can_id)
@@ -92,6 +109,29 @@ class CheckedNetwork(canopen.Network):
             except Exception as exc:  # noqa: BLE001 - a frame must not stop the receive thread
                 problem = f'{type(exc).__name__}: {exc}'
         self.owner.garbage(can_id, bytes(data), problem)
+
+
+class ErrorFrameListener(can.Listener):
+    """canopen's MessageListener drops the error frames the interface reports; this one hands
+    them to the bus (CanBus.error_frame)."""
+
+    def __init__(self, bus: 'CanBus'):
+        self.bus = bus
+
+    def on_message_received(self, msg: can.Message) -> None:
+        if msg.is_error_frame:
+            self.bus.error_frame(msg.arbitration_id, bytes(msg.data))
+
+    def stop(self) -> None:
+        pass
+
+
+def error_frame_text(can_id: int, data: bytes) -> str:
+    """A SocketCAN error frame in words: its classes, the controller's state."""
+    parts = [name for bit, name in CAN_ERR_CLASSES.items() if can_id & bit]
+    if can_id & CAN_ERR_CRTL and len(data) > 1:
+        parts += [name for bit, name in CAN_ERR_CRTL_STATES.items() if data[1] & bit]
+    return ', '.join(parts) or f'error class 0x{can_id:03X}'
 
 
 class CanBus(Bus):
@@ -121,7 +161,9 @@ class CanBus(Bus):
         self.frame_checks: dict[int, Callable[[bytes], str]] = {}   # COB-ID -> problem or ''
         self._garbage_logged: dict[int, float] = {}
         self.extra: dict[str, int] = {'tpdo_rx': 0, 'emcy_rx': 0, 'heartbeat_rx': 0,
-                                      'bootups': 0, 'garbage_rx': 0}
+                                      'bootups': 0, 'garbage_rx': 0, 'error_frames': 0,
+                                      'bus_off': 0}
+        self._error_frame_logged = -GARBAGE_LOG_PERIOD_S
         if interface == 'socketcand':
             self.description = f'CAN socketcand {host}:{port} {channel}'
         else:
@@ -269,11 +311,31 @@ class CanBus(Bus):
                            'so far)', self.description, can_id, len(data), data.hex(' '),
                            problem, self.extra['garbage_rx'])
 
+    def error_frame(self, can_id: int, data: bytes) -> None:
+        """An error frame from the interface (receive thread): a link error, counted in
+        error_frames (and bus_off); logged at once for bus-off, else one line per period."""
+        self.errors += 1
+        self.extra['error_frames'] += 1
+        decoded = self.interface in SOCKETCAN_ERROR_INTERFACES
+        bus_off = decoded and bool(can_id & CAN_ERR_BUSOFF)
+        if bus_off:
+            self.extra['bus_off'] += 1
+        now = time.monotonic()
+        if bus_off or now - self._error_frame_logged >= GARBAGE_LOG_PERIOD_S:
+            self._error_frame_logged = now
+            what = error_frame_text(can_id, data) if decoded else 'an error frame'
+            logger.warning('%s: link error: the CAN interface reports %s (0x%03X [%d] %s; %d '
+                           'error frames so far)', self.description, what, can_id, len(data),
+                           data.hex(' '), self.extra['error_frames'])
+
 
 def check_length(length: int, what: str) -> Callable[[bytes], str]:
     def check(data: bytes) -> str:
         return '' if len(data) == length else f'{what} has {length} bytes, not {len(data)}'
     return check
+
+
+_SDO_ANSWER_LENGTH = check_length(8, 'an SDO answer')
 
 
 def check_heartbeat(data: bytes) -> str:
@@ -323,7 +385,20 @@ class RemoteDrive:
         checks = bus.frame_checks
         checks[0x700 + node_id] = check_heartbeat
         checks[0x080 + node_id] = check_length(8, 'an EMCY')            # COB-ID 0x1014
-        checks[0x580 + node_id] = check_length(8, 'an SDO answer')
+        checks[0x580 + node_id] = self._check_sdo_answer
+        # SDO answers received since the request in flight (receive thread): its errors
+        # name them
+        self.sdo_answers: collections.deque[bytes] = collections.deque(maxlen=4)
+
+    def _check_sdo_answer(self, data: bytes) -> str:
+        self.sdo_answers.append(data)
+        return _SDO_ANSWER_LENGTH(data)
+
+    def _received(self) -> str:
+        answers = list(self.sdo_answers)
+        if not answers:
+            return 'nothing received'
+        return 'received ' + ', '.join(f'[{len(a)}] {a.hex(" ")}' for a in answers)
 
     # Attachment --------------------------------------------------------------------------------
     def attach(self) -> canopen.BaseNode402:
@@ -428,6 +503,7 @@ class RemoteDrive:
     def _sdo(self, what: str, fn: Callable[[], Any], expected_aborts: tuple[int, ...] = ()
              ) -> Any:
         self.bus.transactions += 1
+        self.sdo_answers.clear()
         try:
             return fn()
         except SdoAbortedError as exc:
@@ -436,8 +512,9 @@ class RemoteDrive:
             raise SdoAbortError(f'{what}: {abort_text(exc.code)}', exc.code) from None
         except SdoCommunicationError as exc:
             self.bus.errors += 1
-            raise LinkError(f'{self.name} (node-ID {self.node_id}) gave no SDO answer to {what} '
-                            f'within {self.bus.timeout_s:g} s: {exc}') from None
+            raise LinkError(f'{self.name} (node-ID {self.node_id}) gave no valid SDO answer to '
+                            f'{what} within {self.bus.timeout_s:g} s: {exc} '
+                            f'({self._received()})') from None
         except (can.CanError, OSError, RuntimeError) as exc:
             self.bus.errors += 1
             raise LinkError(f'{self.name}: {what}: {type(exc).__name__}: {exc}') from None
@@ -447,7 +524,15 @@ class RemoteDrive:
         SdoAbortError; those in `expected_aborts` do not count as link errors."""
         node = self._node()
         what = f'read 0x{index:04X}:{sub:02X}'
-        return self._sdo(what, lambda: self._entry(node, index, sub).raw, expected_aborts)
+        entry = self._entry(node, index, sub)
+        data = self._sdo(what, lambda: entry.data, expected_aborts)
+        try:
+            return entry.od.decode_raw(data)
+        except ObjectDictionaryError:      # an upload shorter than the object's type
+            self.bus.errors += 1
+            raise LinkError(f'{self.name} (node-ID {self.node_id}): {what} answered '
+                            f'{len(data)} byte(s) {data.hex(" ")}, its EDS type has '
+                            f'{len(entry.od) // 8} ({self._received()})') from None
 
     def write(self, index: int, sub: int, value: Any) -> None:
         node = self._node()

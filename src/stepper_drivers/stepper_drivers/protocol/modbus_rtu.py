@@ -30,6 +30,7 @@ from typing import Any, Sequence
 from pymodbus.framer import FramerRTU
 
 from .. import drive
+from . import serial_port
 from .modbus import (EXCEPTION_FLAG, FC_READ_HOLDING_REGISTERS,  # noqa: F401 - re-exported
                      FC_READ_INPUT_REGISTERS, FC_WRITE_MULTIPLE_REGISTERS,
                      FC_WRITE_SINGLE_REGISTER, FUNCTION_CODES, ILLEGAL_DATA_ADDRESS,
@@ -207,17 +208,19 @@ class ModbusRtuBus(ModbusBus):
     request is counted and the request sent again (`retries` times); then LinkError. An exception
     reply is a DriveError (the slave answered: the link is fine), never retried. Any failure of
     the port itself (OSError, termios.error, a port closed under pyserial) is a one-line
-    LinkError at once.
+    LinkError at once. An opened port gets serial_port.prepare (low-latency mode; with `rs485`
+    the kernel's RS-485 mode, or LinkError naming the parameter).
     """
 
     def __init__(self, port: str, baudrate: int = 9600, parity: str = 'E', stopbits: int = 1,
-                 timeout_s: float = 0.5, retries: int = 1):
+                 timeout_s: float = 0.5, retries: int = 1, rs485: bool = False):
         self.port = str(port)
         self.baudrate = int(baudrate)
         self.parity = str(parity).upper()
         self.stopbits = int(stopbits)
         self.timeout_s = float(timeout_s)
         self.retries = int(retries)
+        self.rs485 = bool(rs485)        # the kernel's RS-485 mode (serial_port.set_rs485)
         if self.parity not in PARITIES:
             raise ValueError(f'parity: {parity!r} is not allowed (allowed: N, E, O)')
         self.t35_s = t35_s(self.baudrate)
@@ -253,6 +256,11 @@ class ModbusRtuBus(ModbusBus):
                         if self.parity != 'N' and code == 22 else '')
                 raise drive.LinkError(f'cannot open {self.port} at {self.baudrate} baud '
                                       f'8{self.parity}{self.stopbits}: {exc}{hint}') from None
+            try:
+                serial_port.prepare(port, self.port, rs485=self.rs485)
+            except serial_port.PortSetupError as exc:
+                port.close()
+                raise drive.LinkError(str(exc)) from None
             self._serial = port
             self._idle_at = time.monotonic() + self.t35_s
             logger.info('opened %s', self.description)
@@ -305,10 +313,10 @@ class ModbusRtuBus(ModbusBus):
                     self.errors += 1
                     self.crc_errors += 1
                     problems.append(str(exc))
-                except ReplyMismatch as exc:
+                except ReplyMismatch as exc:    # (raised by parse_response: `reply` is set)
                     self.errors += 1
                     self.mismatches += 1
-                    problems.append(str(exc))
+                    problems.append(f'{exc}: reply {reply.hex(" ")}')
                 except OSError as exc:   # serial.SerialException is an OSError (port gone)
                     self.errors += 1
                     raise drive.LinkError(f'{what}: {exc}') from None

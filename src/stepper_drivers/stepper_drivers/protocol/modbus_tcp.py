@@ -110,6 +110,7 @@ class ModbusTcpBus(ModbusBus):
             self.transactions += 1
             self._tid = (self._tid + 1) & 0xFFFF
             pdu = request.pdu()
+            reply = b''
             try:
                 sock.sendall(MBAP.pack(self._tid, 0, len(pdu) + 1, request.unit & 0xFF) + pdu)
                 reply = self._reply(sock, request)
@@ -129,7 +130,8 @@ class ModbusTcpBus(ModbusBus):
                                       'server') from None
             except ReplyMismatch as exc:
                 self.errors += 1
-                raise drive.LinkError(f'{self._what(request)}: {exc}') from None
+                got = f' (reply PDU {reply.hex(" ")})' if reply else ''
+                raise drive.LinkError(f'{self._what(request)}: {exc}{got}') from None
             except OSError as exc:          # reset, broken pipe, ...
                 self.errors += 1
                 raise drive.LinkError(f'{self._what(request)}: {exc.strerror or exc!r}') from None
@@ -154,9 +156,10 @@ class ModbusTcpBus(ModbusBus):
             if len(self._rx) >= MBAP.size:
                 tid, protocol, length, unit = MBAP.unpack_from(self._rx)
                 if protocol != 0 or not 2 <= length <= MAX_ADU_BYTES - 6:
+                    got = bytes(self._rx[:MAX_ADU_BYTES]).hex(' ')
                     self._rx.clear()          # the framing is lost: nothing after it is sure
                     raise ReplyMismatch(f'not a Modbus TCP header (protocol id {protocol}, '
-                                        f'length {length})')
+                                        f'length {length}): received {got}')
                 end = MBAP.size - 1 + length
                 if len(self._rx) >= end:
                     pdu = bytes(self._rx[MBAP.size:end])
@@ -165,7 +168,7 @@ class ModbusTcpBus(ModbusBus):
                         self.stale_replies += 1
                         continue
                     if unit != request.unit & 0xFF:
-                        raise ReplyMismatch(f'reply from unit {unit}')
+                        raise ReplyMismatch(f'reply from unit {unit} (PDU {pdu.hex(" ")})')
                     return pdu
             remaining = deadline - time.monotonic()
             if remaining <= 0:

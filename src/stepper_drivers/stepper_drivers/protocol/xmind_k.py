@@ -592,9 +592,14 @@ def parse_answer(text: str | bytes, request: Frame, tolerant: bool = True) -> Fr
         raise AddressError(f'answer {text!r} from address {address:02d}, '
                            f'expected {request.address:02d}')
     body = text[2:]
+    code = request.code
+    if body == 'Y' and code in REQUEST_CODES:
+        # §4.4.1: Y confirms a command or an instruction; a data request is answered with its
+        # data (§4.3), or N (§4.4.2)
+        raise FrameSyntaxError(f'answer {text!r} to the data request {code}: Y confirms '
+                               'commands only (§4.4.1)')
     if body in ('Y', 'N'):
         return Frame(address, body)
-    code = request.code
     if code not in REQUEST_CODES or not body.startswith(code + ','):
         raise FrameSyntaxError(f'answer {text!r} does not fit the request {code}')
     p = body.split(',')[1:]

@@ -38,7 +38,8 @@ class XmindKBus(drive.Bus):
         self.url = str(params['port'])
         self.line = AsciiLine(self.url, baudrate=int(params['baudrate']),
                               parity=str(params['parity']), stopbits=int(params['stopbits']),
-                              margin_s=xk.MARGIN_S, local_echo=bool(params['local_echo']))
+                              margin_s=xk.MARGIN_S, local_echo=bool(params['local_echo']),
+                              rs485=bool(params.get('rs485', False)))
         self.char_s = self.line.char_time_s
         self.slack_s = float(params['timeout_s'])
         self.retries = int(params['retries'])

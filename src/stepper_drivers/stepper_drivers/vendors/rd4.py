@@ -50,7 +50,9 @@ from typing import Any, Callable, Mapping
 from ..drive import (Bus, Drive, DriveError, DriveState, Homing, HomingState, IdentityError,
                      LinkError, Motion, ParamSpec, State, Steps, Vendor, register_type)
 from .. import param_rules
-from ..protocol.modbus_rtu import BITS_PER_CHAR, ModbusRtuBus
+from ..protocol import serial_port
+from ..protocol.modbus_rtu import (BITS_PER_CHAR, ILLEGAL_DATA_ADDRESS, ILLEGAL_FUNCTION,
+                                    ModbusExceptionError, ModbusRtuBus)
 from . import rd4_map as rm
 from .rd4_map import HR, IR
 
@@ -224,13 +226,14 @@ class Rd4Drive(Drive):
 
     def _needed(self, read: Callable[[int, int], list[int]], address: int, count: int,
                 what: str) -> list[int]:
-        """A read the driver cannot do without: an exception reply means the device lacks the
-        registers, so it is not an RD4 (IdentityError)."""
+        """A read the driver cannot do without: exception ILLEGAL FUNCTION or ILLEGAL DATA
+        ADDRESS means the device lacks the registers, so it is not an RD4 (IdentityError);
+        another exception (busy, device failure) is the device's state of the moment."""
         try:
             return read(address, count)
-        except LinkError:
-            raise
-        except DriveError as e:
+        except ModbusExceptionError as e:
+            if e.code not in (ILLEGAL_FUNCTION, ILLEGAL_DATA_ADDRESS):
+                raise
             raise IdentityError(f'{self.name}: node {self.node_id} has no {what} ({e}): not an '
                                 'RD4 (§8.1)') from None
 
@@ -828,6 +831,7 @@ PARAMS = (
               'bit with parity, 2 without)', scope='bus', min_value=0, max_value=2),
     ParamSpec('retries', 1, 'resends after a timeout, a CRC error or a reply that does not '
               'match; then the link counts as lost', scope='bus', min_value=0, max_value=5),
+    ParamSpec('rs485', False, serial_port.RS485_DESCRIPTION, scope='bus'),
     ParamSpec('node_id', 1, 'node ID on the dip-switch (1..247, §4.4.1)', min_value=1,
               max_value=247),
     ParamSpec('watchdog', True, 'set Watch dog enable (Control Word bit 8) while enabled: the '
@@ -886,7 +890,8 @@ def _line_settings(params: Mapping[str, Any]) -> tuple:
 
 def make_bus(params: Mapping[str, Any]) -> ModbusRtuBus:
     port, baud, parity, stopbits, timeout_s, retries = _line_settings(params)
-    return ModbusRtuBus(port, baud, parity, stopbits, timeout_s=timeout_s, retries=retries)
+    return ModbusRtuBus(port, baud, parity, stopbits, timeout_s=timeout_s, retries=retries,
+                        rs485=bool(VENDOR.with_defaults(params)['rs485']))
 
 
 def _check_drive(name: str, params: Mapping[str, Any]) -> None:

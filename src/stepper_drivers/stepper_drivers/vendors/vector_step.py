@@ -786,6 +786,11 @@ class VectorStepDrive(Drive):
         yield from self.cia.start_set_point(CW_ENABLE_OPERATION, relative=False, immediate=True,
                                             timeout_s=HANDSHAKE_TIMEOUT_S)
 
+    @property
+    def motion_sent_t(self) -> float | None:
+        """The new set point's write (controlword bit 4 up: the drive starts then)."""
+        return self.cia.set_point_sent_t
+
     def set_velocity(self, velocity_steps_s: float, motion: Motion) -> Steps[None]:
         units = self._rps100(velocity_steps_s, vm.PROFILE_VELOCITY, 0, 'velocity')
         jog = self._mode_cmd == vm.MODE_JOG and \
@@ -1070,11 +1075,13 @@ class VectorStepDrive(Drive):
 PARAMS = (
     ParamSpec('can.interface', 'socketcand',
               "python-can interface: 'socketcand' (the loopback broker of the tests and the "
-              "demo), 'socketcan' for a Linux CAN card, or any other python-can interface",
-              scope='bus'),
-    ParamSpec('can.channel', 'can0', "CAN channel ('can0')", scope='bus'),
+              "demo), 'socketcan' for a Linux CAN interface, 'pcan', 'kvaser', 'slcan' or any "
+              'other python-can interface (docs/vector_step.md, CAN adapters)', scope='bus'),
+    ParamSpec('can.channel', 'can0', "CAN channel: 'can0' (socketcan), 'PCAN_USBBUS1' (pcan), "
+              "'0' (kvaser), '/dev/ttyACM0' (slcan)", scope='bus'),
     ParamSpec('can.bitrate', 125000, 'bit rate [bit/s]: 10k, 20k, 50k, 125k, 250k, 500k, 800k, '
-              '1M (Rcanbaud 0..7; 125k with the rotary switches at 00); socketcand ignores it',
+              '1M (Rcanbaud 0..7; 125k with the rotary switches at 00); pcan, kvaser and slcan '
+              'set it, socketcan takes it from ip link, socketcand ignores it',
               scope='bus', min_value=10000, max_value=1000000),
     ParamSpec('can.host', '127.0.0.1', 'socketcand server host', scope='bus'),
     ParamSpec('can.port', 29536, 'socketcand server port', scope='bus', min_value=1,

@@ -35,7 +35,7 @@ from typing import Any, Callable, Mapping
 from .. import drive, param_rules
 from ..drive import (DriveError, DriveState, HomingState, LinkError, Motion, RefusedError,
                      State)
-from ..protocol import xmind_k as xk
+from ..protocol import serial_port, xmind_k as xk
 from ..protocol.xmind_k_bus import GarbledAnswer, XmindKBus
 
 logger = logging.getLogger(__name__)
@@ -270,33 +270,33 @@ class XmindKDrive(drive.Drive):
 
     def _identify(self, code: str, *args, expected: str, silence_ok: bool = False
                   ) -> xk.Frame | None:
-        """A data request at connect. Every idle X-MIND K answers every valid data request in
-        the §4.3 format, so an N, or the same wrong answer on every try, means the device at
-        this address is not an X-MIND K (IdentityError); silence raises LinkError (or gives
-        None with silence_ok: a busy drive is silent, §3)."""
+        """A data request at connect: its §4.3 answer, or LinkError naming the request and the
+        bytes read (the node reconnects with its normal back-off). An answer that breaks the
+        §4.3 format (a character outside it, a wrong field count, Y, an echo of the request)
+        is a garbled line, not another device; so is N: every idle X-MIND K answers these
+        requests, and a request garbled on its way draws N (§4.4.2). Silence raises LinkError
+        too, or gives None with silence_ok (a busy drive is silent, §3). IdentityError is
+        for well-formed answers that name another device (connect: AD, RS)."""
+        nn = f'{self.number:02d}'
         request = self._text(code, *args)
         try:
             answer = self._ask(code, *args, tries=max(2, 1 + self.bus.retries))
         except GarbledAnswer as e:
-            if len(e.answers) < 2 or len(set(e.answers)) != 1 \
-                    or not e.answers[0].endswith(xk.TERMINATOR):
-                raise                           # line noise: a transaction failed, no more
-            read = e.answers[0].decode('ascii', errors='replace').rstrip('\r')
-            echo = (' (that is the request itself: an adapter that echoes what it sends '
-                    'needs local_echo: true)' if read == request else '')
-            raise drive.IdentityError(
-                f'drive {self.number:02d}: {request!r} was answered {read!r} on every try, '
-                f'expected {expected!r} (§4.3): the device at address {self.number:02d} on '
-                f'{self.bus.url} is not an X-MIND K{echo}') from None
+            read = ', '.join(repr(a) for a in e.answers)
+            echo = (' (the request itself: an adapter that echoes what it sends needs '
+                    'local_echo: true)' if any(a.rstrip(xk.TERMINATOR) == request.encode()
+                                               for a in e.answers) else '')
+            raise LinkError(f'drive {nn}: {request!r} was answered {read}, not the §4.3 answer '
+                            f'{expected!r}: a garbled answer on {self.bus.url}{echo}') from None
         if answer is None:
             if silence_ok:
                 return None
-            raise LinkError(f'drive {self.number:02d} did not answer {code} on {self.bus.url}')
+            raise LinkError(f'drive {nn} did not answer {code} on {self.bus.url}')
         if answer.code == 'N':
-            raise drive.IdentityError(
-                f'drive {self.number:02d}: {request!r} was answered N, expected {expected!r}: '
-                'every X-MIND K answers this data request (§4.3); the device at address '
-                f'{self.number:02d} on {self.bus.url} is not an X-MIND K')
+            raise LinkError(
+                f'drive {nn}: {request!r} was answered N (§4.4.2), expected {expected!r}: every '
+                'X-MIND K answers this data request (§4.3), so the request was garbled on '
+                f'{self.bus.url}, or the device at address {nn} is not an X-MIND K')
         return answer
 
     def _command(self, code: str, *args) -> None:
@@ -352,6 +352,12 @@ class XmindKDrive(drive.Drive):
         yield 0.0
         ad = self._identify('QS', 'AD', expected=f'{nn}QS,AD,{nn}').args[1]
         if ad != self.number:
+            # The answer has no checksum: a digit garbled into another is asked again.
+            yield 0.0
+            again = self._identify('QS', 'AD', expected=f'{nn}QS,AD,{nn}').args[1]
+            if again != ad:
+                raise LinkError(f'drive {nn}: QS,AD answered {ad:02d}, then {again:02d}: '
+                                f'garbled answers on {self.bus.url}')
             # §4.2.2.1: a drive answers at the address of its AD preset, and only there
             raise drive.IdentityError(
                 f'drive {nn}: QS,AD answered {ad:02d}, expected {nn}: the device answering at '
@@ -705,6 +711,15 @@ class XmindKDrive(drive.Drive):
             return
         yield from self._start_move(target, motion, self.epoch)
 
+    def until_ready_for_move(self) -> drive.Steps[bool] | None:
+        """An index run that ends within QUEUE_BEHIND_S: until it has ended (the next one then
+        starts without a stop, §3)."""
+        job = self.job
+        if job is None or job.kind != 'move' or job.stopping or self.pending is not None \
+                or job.estimate.end_s - time.monotonic() > QUEUE_BEHIND_S:
+            return None
+        return self._await_index_end(job, self.epoch)
+
     def _await_index_end(self, job: Job, epoch: int) -> drive.Steps[bool]:
         """Until `job`, an index run about to end, has ended (QA answers again, §3): True; False
         when a stop or another command came meanwhile, or it is still busy QUEUE_BEHIND_S past
@@ -946,7 +961,11 @@ class XmindKDrive(drive.Drive):
             raise DriveError(f'{address!r}: {e}') from None
         answer = self._need(code, *frame.args)
         if data_type.lower() == 'string':
-            return xk.encode_answer(answer).decode().rstrip('\r')
+            try:
+                return xk.encode_answer(answer).decode().rstrip('\r')
+            except xk.ProtocolError:       # §8 A12: QS,CM answers 2 without its kkk
+                return ','.join([f'{self.number:02d}{code}',
+                                 *(str(a) for a in answer.args if a is not None)])
         value = {'QA': lambda a: a[0], 'QS': lambda a: a[1], 'QI': lambda a: a[1],
                  'QO': lambda a: a[1], 'QC': lambda a: a[0], 'QE': lambda a: a[0]}.get(code)
         if value is None or not isinstance(value(answer.args), int):
@@ -1015,6 +1034,7 @@ VENDOR = drive.Vendor(
            'garbled (never for PS)', scope='bus', min_value=0, max_value=5),
         PS('local_echo', False, 'the RS-485 adapter echoes what it sends: read and drop it',
            scope='bus'),
+        PS('rs485', False, serial_port.RS485_DESCRIPTION, scope='bus'),
         PS('address', 0, 'drive address (§2.2.1, WS,AD)', min_value=0, max_value=47),
         PS('resolution', '', 'operation mode preset RS written at connect when it differs '
            "('' = leave as is); must match steps_per_rev", choices=('',) + tuple(xk.RESOLUTIONS)),

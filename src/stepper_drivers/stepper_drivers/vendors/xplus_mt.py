@@ -60,6 +60,7 @@ WATCHDOG_MIN_POLLS = 5         # the watchdog must span at least this many poll 
 
 _SIMPLE_INT_TYPES = ('u16', 'i16', 'u32', 'i32')
 _NO_SUCH_REGISTER = (0x01, 0x02)   # ILLEGAL FUNCTION / ILLEGAL DATA ADDRESS
+_REFUSED = (0x01, 0x02, 0x03)      # ... and ILLEGAL DATA VALUE: the device says no
 
 
 class XplusMtDrive(Drive):
@@ -155,6 +156,8 @@ class XplusMtDrive(Drive):
         try:
             self._write((name, value), what=f'drives.{self.name}.{param}: ')
         except ModbusExceptionError as exc:
+            if exc.code not in _REFUSED:
+                raise                       # busy, device failure: the device's moment
             raise IdentityError(f'drives.{self.name}.{param}: the drive refuses {value} in '
                                 f'{REG[name]} ({exc})') from exc
 
@@ -429,6 +432,11 @@ class XplusMtDrive(Drive):
         yield from self.cia.start_set_point(
             CW_ENABLE_OPERATION | CW_BIT_CHANGE_SET_IMMEDIATELY, relative=False, immediate=True,
             timeout_s=HANDSHAKE_TIMEOUT_S)
+
+    @property
+    def motion_sent_t(self) -> float | None:
+        """The new set point's write (controlword bit 4 up: the drive starts then)."""
+        return self.cia.set_point_sent_t
 
     def set_velocity(self, velocity_steps_s: float, motion: Motion) -> Steps[None]:
         _, accel, decel = self._motion_values(motion, 'set_velocity')

@@ -1,0 +1,330 @@
+"""Link noise is not identity: a BusSupervisor (no ROS) over the scripted drives of
+test_supervisor.py and over each vendor's real driver and simulator.
+
+- An answer that breaks its protocol's format is a LinkError: the drive is DISCONNECTED and
+  reconnected on the normal back-off for as long as the noise lasts, never "not driven".
+- Only a well-formed answer naming another device (IdentityError) makes a drive not driven;
+  the status says when it is checked again, it is checked again on the slow back-off
+  (IDENTITY_RECHECK_S doubling up to IDENTITY_RECHECK_MAX_S, shortened here), for as long as
+  the node runs, and `recheck()` (fault_reset) checks at once. A drive not driven is never
+  commanded.
+"""
+
+import re
+import time
+
+import pytest
+from stepper_drivers import supervisor
+from stepper_drivers.drive import DriveError, IdentityError, LinkError, State
+from stepper_drivers.supervisor import COMMAND, BusSupervisor, NotConnected
+from stepper_drivers.vendors import rd4
+from stepper_drivers.vendors import vector_step as vs
+from stepper_drivers.vendors.xplus_mt import VENDOR as XPLUS_MT
+from stepper_sim.harness import wait_for
+from stepper_sim.rd4_sim import Rd4Unit, RtuLine
+from stepper_sim.socketcand_broker import SocketcandBroker
+from stepper_sim.vector_step_sim import NodeConfig, VectorStepSim
+from stepper_sim.xplus_mt_sim import XplusMtDriveConfig, XplusMtSim
+
+from test_supervisor import Line, RATE_HZ, ScriptDrive
+from test_vector_step_drive import params as vector_step_params
+from test_xmind_k_driver import Rig as XmindKRig
+
+SETTINGS = {'publish_rate_hz': RATE_HZ, 'command_timeout_s': 0.3, 'reconnect_period_s': 0.05}
+AT = r'checked again at \d\d:\d\d:\d\d, in {:g} s; fault_reset checks at once'
+
+
+@pytest.fixture
+def fast_recheck(monkeypatch):
+    monkeypatch.setattr(supervisor, 'IDENTITY_RECHECK_S', 0.2)
+    monkeypatch.setattr(supervisor, 'IDENTITY_RECHECK_MAX_S', 0.5)
+
+
+def counted(drive):
+    """Record the time of every connect() call of `drive`."""
+    calls = []
+    connect = drive.connect
+
+    def wrapper():
+        calls.append(time.monotonic())
+        return connect()
+    drive.connect = wrapper
+    return calls
+
+
+def scripted(error=None, **settings):
+    line = Line()
+    drive = ScriptDrive(line, 'axis1')
+    if error is not None:
+        drive.fail_always['connect'] = error
+    events = []
+    sup = BusSupervisor(line, {'axis1': drive}, {**SETTINGS, **settings},
+                        on_event=lambda *e: events.append(e))
+    calls = counted(drive)
+    sup.start()
+    return sup, drive, sup.slots['axis1'], calls, events
+
+
+# ----------------------------------------------------------------------- the supervisor
+def test_an_identity_error_is_not_driven_and_checked_again_for_ever(fast_recheck):
+    sup, drive, slot, calls, events = scripted(IdentityError('1018:02 reads 0x1234: not an X'))
+    try:
+        wait_for(lambda: slot.not_driven, 2.0, 'not driven')
+        assert re.search(r'^1018:02 reads 0x1234: not an X \(' + AT.format(0.2) + r'\)$',
+                         slot.not_driven), slot.not_driven
+        assert not slot.connected and slot.state.state == State.DISCONNECTED
+        # never commanded meanwhile
+        with pytest.raises(NotConnected):
+            sup.submit('axis1', COMMAND, lambda: drive.move_to(5, None), 'move').result(1.0)
+        wait_for(lambda: len(calls) >= 5, 5.0, 'five identity checks')
+        gaps = [b - a for a, b in zip(calls, calls[1:])]
+        assert gaps[0] == pytest.approx(0.2, abs=0.15), gaps
+        assert gaps[1] == pytest.approx(0.4, abs=0.15), gaps
+        assert all(g == pytest.approx(0.5, abs=0.15) for g in gaps[2:4]), gaps   # the cap
+        assert re.search(AT.format(0.5), slot.not_driven), slot.not_driven
+        assert not sup.bus.calls('axis1', 'move_to')
+        drive.fail_always.clear()                            # the right device again
+        wait_for(lambda: slot.connected and slot.polls, 2.0, 'driven again')
+        assert slot.not_driven == '' and slot.last_error == ''
+        assert any('the identity matches again: driven' in e[2] for e in events), events
+    finally:
+        sup.shutdown(0.5)
+
+
+def test_noise_is_retried_on_the_reconnect_back_off_and_never_makes_a_drive_not_driven():
+    sup, drive, slot, calls, _ = scripted(LinkError("'03QS,RS' was answered b'03?S,RS,D2\\r'"),
+                                          reconnect_period_s=0.02)
+    try:
+        wait_for(lambda: len(calls) >= 8, 5.0, 'eight connect attempts')   # and more to come
+        assert slot.not_driven == '' and not slot.connected
+        assert "b'03?S,RS,D2\\r'" in slot.last_error
+        assert max(b - a for a, b in zip(calls, calls[1:])) < 0.3       # 8 x 0.02 s at most
+        drive.fail_always.clear()
+        wait_for(lambda: slot.connected, 1.0, 'connected')
+    finally:
+        sup.shutdown(0.5)
+
+
+def test_recheck_connects_at_once_and_says_what_it_found(monkeypatch):
+    monkeypatch.setattr(supervisor, 'IDENTITY_RECHECK_S', 60.0)
+    sup, drive, slot, calls, _ = scripted(IdentityError('HW Version reads RD5'))
+    try:
+        wait_for(lambda: slot.not_driven, 2.0, 'not driven')
+        assert re.search(AT.format(60), slot.not_driven)
+        with pytest.raises(IdentityError, match='RD5'):
+            sup.recheck('axis1').result(2.0)             # checked now, not in a minute
+        assert len(calls) == 2 and re.search(AT.format(120), slot.not_driven)
+        drive.fail_always['connect'] = LinkError('no answer')   # the device is gone meanwhile
+        with pytest.raises(LinkError):
+            sup.recheck('axis1').result(2.0)
+        assert slot.not_driven == ''                     # nothing is known: DISCONNECTED
+        drive.fail_always.clear()
+        wait_for(lambda: slot.connected, 2.0, 'connected')
+        assert sup.recheck('axis1').result(1.0) == {'serial_number': '7'}
+    finally:
+        sup.shutdown(0.5)
+    with pytest.raises(supervisor.Cancelled):
+        sup.recheck('axis1').result(1.0)                  # after shutdown: at once
+
+
+def test_a_drive_refused_for_good_stays_refused(fast_recheck):
+    """One device configured twice (the node's refuse_drive) is a configuration error: it is
+    not connected again, however long the node runs; recheck says so."""
+    sup, drive, slot, calls, _ = scripted()
+    try:
+        wait_for(lambda: slot.connected, 2.0, 'connected')
+        sup.refuse_drive('axis1', 'axis1 and axis2 answer with one identity')
+        wait_for(lambda: not slot.connected, 2.0, 'dropped')
+        n = len(calls)
+        time.sleep(0.8)                                   # beyond IDENTITY_RECHECK_MAX_S
+        assert len(calls) == n and 'one identity' in slot.not_driven
+        with pytest.raises(DriveError, match='not driven: axis1 and axis2'):
+            sup.recheck('axis1').result(1.0)
+    finally:
+        sup.shutdown(0.5)
+
+
+# -------------------------------------------------------------------- the four vendors
+class VendorRig:
+    """One drive of a vendor on its simulator; `garble` / `clean` the answers, `make_wrong`
+    / `make_right` its identity (a well-formed answer naming another device)."""
+
+    name = 'axis1'
+    noise = ''             # what the link error of a garbled identity answer names
+
+    def supervise(self):
+        self.events = []
+        self.sup = BusSupervisor(self.bus, {self.name: self.drive}, dict(SETTINGS,
+                                 reconnect_period_s=0.1),
+                                 on_event=lambda *e: self.events.append(e))
+        self.calls = counted(self.drive)
+        self.sup.start()
+        return self.sup.slots[self.name]
+
+    def close(self):
+        self.sup.shutdown(0.5)
+
+
+class XmindK(VendorRig):
+    name = 'a1'
+    noise = r"01QS,RS.* b'01\?S,RS,D2\\r'"                  # the field's '03?S,RS,D2'
+    wrong = r'QS,RS answered B2 = 1600 step/rev'
+
+    def __init__(self, tmp_path, wrong=False):
+        self.rig = XmindKRig(tmp_path, sims={'a1': {'address': 1}}, connect=False)
+        self.bus, self.drive = self.rig.bus, self.rig.drives['a1']
+        if wrong:
+            self._rs('B2')
+
+    def _rs(self, value):
+        with self.rig.line.lock:
+            self.rig.sim().presets['RS'] = value
+
+    def garble(self):
+        self.rig.line.set_link_fault('corrupt_reply')        # '?' for the 3rd character
+
+    def clean(self):
+        self.rig.line.set_link_fault('link_ok')
+
+    def make_right(self):
+        self._rs('D2')
+
+    def close(self):
+        super().close()
+        self.rig.close()
+
+
+class Rd4(VendorRig):
+    noise = r'FC04 read 4 at 0x0C: CRC error in reply'
+    wrong = r'HW Version \[0x0F\] reads HW 1, RD5'
+
+    def __init__(self, tmp_path, wrong=False):
+        self.unit = Rd4Unit('axis1', 1, hw_version=0x2001 if wrong else 0x0001)
+        self.line = RtuLine([self.unit], tmp_path / 'rd4.pty', baud_switch=0x03)
+        self.line.start()
+        self.bus = rd4.make_bus({'port': str(tmp_path / 'rd4.pty'), 'baudrate': 19200,
+                                 'parity': 'N', 'timeout_s': 0.1})
+        self.drive = rd4.make_drive(self.bus, 'axis1', {'node_id': 1, 'steps_per_rev': 1024.0})
+
+    def garble(self):
+        self.line.set_link_fault('corrupt_reply')            # one byte: the CRC's
+
+    def clean(self):
+        self.line.set_link_fault('link_ok')
+
+    def make_right(self):
+        with self.line.lock:
+            self.unit.hw_version = 0x0001
+
+    def close(self):
+        super().close()
+        self.line.stop()
+
+
+class XplusMt(VendorRig):
+    noise = r'FC03 read 1 at 1162: not a Modbus TCP header \(protocol id 16128'
+    wrong = r'STEP_REVOLUTION \(1081\) reads 200'
+
+    def __init__(self, tmp_path, wrong=False):
+        self.sim = XplusMtSim(port=0, drives=[XplusMtDriveConfig(
+            'axis1', unit_id=1, registers={1081: 200} if wrong else {})])
+        self.sim.start()
+        self.bus = XPLUS_MT.make_bus({'host': '127.0.0.1', 'port': self.sim.port,
+                                      'timeout_s': 0.3})
+        self.drive = XPLUS_MT.make_drive(self.bus, 'axis1', {'unit_id': 1})
+
+    def garble(self):
+        self.sim.link.set('corrupt_reply')                    # '?' for the 3rd byte
+
+    def clean(self):
+        self.sim.link.set('ok')
+
+    def make_right(self):
+        device = self.sim.drives['axis1']
+        with device._lock:
+            device._regs[1081] = 12800
+
+    def close(self):
+        super().close()
+        self.sim.stop()
+
+
+class VectorStep(VendorRig):
+    noise = r'gave no valid SDO answer to read 0x1000:00 .*received \[8\] 43 00 3f 00'
+    wrong = r'0x1018:02 product code reads 0x00001234'
+
+    def __init__(self, tmp_path, wrong=False):
+        self.broker = SocketcandBroker(port=0, ready_delay_s=0.01)
+        self.broker.start()
+        self.sim = VectorStepSim([NodeConfig('axis1', 1, product_code=0x1234 if wrong
+                                             else 0x138E)],
+                                 port=self.broker.port, reboot_delay_s=0.02)
+        self.sim.start()
+        p = vector_step_params(**{'can.port': self.broker.port, 'node_id': 1,
+                                  'boot_timeout_s': 0.3})
+        self.bus = vs.make_bus(p)
+        self.drive = vs.make_drive(self.bus, 'axis1', p)
+        wait_for(lambda: self.sim.nodes['axis1'].nmt_state == 0x7F, 5.0, 'booted')
+
+    def garble(self):
+        self.sim.inject_fault('axis1', 'corrupt_reply', 0, 0.0)     # SDO answers
+        self.sim.inject_fault('axis1', 'reboot', 0, 0.0)   # a boot-up: the driver reconnects
+
+    def clean(self):
+        self.sim.inject_fault('axis1', 'link_ok', 0, 0.0)
+
+    def make_right(self):
+        with self.sim.lock:
+            self.sim.nodes['axis1'].cfg.product_code = 0x138E
+
+    def close(self):
+        super().close()
+        self.sim.stop()
+        self.broker.stop()
+
+
+VENDORS = {'xmind_k': XmindK, 'rd4': Rd4, 'xplus_mt': XplusMt, 'vector_step': VectorStep}
+NOISE_S = 3.0
+
+
+@pytest.mark.parametrize('vendor', VENDORS)
+def test_garbled_identity_answers_for_seconds_then_clean_the_drive_comes_back(tmp_path,
+                                                                              vendor):
+    rig = VENDORS[vendor](tmp_path)
+    slot = rig.supervise()
+    try:
+        wait_for(lambda: slot.connected and slot.polls, 10.0, 'connected')
+        rig.garble()
+        wait_for(lambda: not slot.connected, 10.0, 'the link lost to the noise')
+        n, end = len(rig.calls), time.monotonic() + NOISE_S
+        while time.monotonic() < end:
+            assert not slot.connected and slot.not_driven == '', slot.not_driven
+            time.sleep(0.01)
+        assert len(rig.calls) >= n + 3, 'reconnected on the back-off meanwhile'
+        assert re.search(rig.noise, slot.last_error), slot.last_error
+        rig.clean()
+        wait_for(lambda: slot.connected and slot.polls, 10.0, 'connected again, no restart')
+        assert slot.not_driven == ''
+    finally:
+        rig.close()
+
+
+@pytest.mark.parametrize('vendor', VENDORS)
+def test_a_wrong_identity_is_not_driven_until_the_device_is_right(tmp_path, vendor,
+                                                                   fast_recheck):
+    rig = VENDORS[vendor](tmp_path, wrong=True)
+    slot = rig.supervise()
+    try:
+        wait_for(lambda: slot.not_driven, 10.0, 'not driven')
+        assert re.search(rig.wrong, slot.not_driven) and re.search(AT.format(0.2),
+                                                                   slot.not_driven)
+        wait_for(lambda: len(rig.calls) >= 3, 10.0, 'checked again, twice')
+        assert not slot.connected and slot.not_driven
+        with pytest.raises(NotConnected):
+            rig.sup.submit(rig.name, COMMAND, rig.drive.enable, 'enable').result(2.0)
+        rig.make_right()
+        wait_for(lambda: slot.connected and slot.polls, 10.0, 'driven again, no restart')
+        assert slot.not_driven == ''
+        assert not slot.state.enabled            # connecting never enables
+    finally:
+        rig.close()
