@@ -448,7 +448,7 @@ def in_flight(txn: dict[str, list[float]]) -> tuple[str, float | None]:
 
 # ----------------------------------------------------------------------------- part: latency
 def bench_latency(v: Vendor, ros: RosClient, log_dir: pathlib.Path, n: int,
-                  owner_priority: int = 0, can_link: bool = False) -> dict:
+                  owner_priority: int | None = None, can_link: bool = False) -> dict:
     parse = {'xplus_mt': parse_tcp, 'rd4': parse_rtu, 'xmind_k': parse_ascii,
              'vector_step': parse_can}[v.key]
     wire = Wire(parse)
@@ -466,7 +466,8 @@ def bench_latency(v: Vendor, ros: RosClient, log_dir: pathlib.Path, n: int,
     try:
         overrides = start_sim_line(s, wire, link)
         s.add(Helper(['floor', FLOOR_TOPIC], log_dir, f'{v.key}_floor', on_floor))
-        priority = ['-p', f'owner_thread_priority:={owner_priority}'] if owner_priority else []
+        priority = ([] if owner_priority is None
+                    else ['-p', f'owner_thread_priority:={owner_priority}'])
         s.start_node(CONFIG / f'{v.key}.yaml', overrides + priority)
         ros.subscribe(DriveStatus, f'{ns}/status')
         wait_for(running(s.node, lambda: getattr(ros.latest.get(f'{ns}/status'), 'connected',
@@ -560,7 +561,9 @@ def report_latency(v: Vendor, r: dict) -> None:
     print(f'   {v.line}; node at its configured {r["rate_hz"]:g} Hz with {r["drives"]} drives, '
           f'axis1 enabled; {r["commands"]} position_command ({len(r["target"])} seen on the '
           f'wire) in {r["duration_s"]:.0f} s; bus owner '
-          + (f'on SCHED_FIFO {r["owner_priority"]}' if r.get('owner_priority')
+          + ('at the node\'s default (SCHED_FIFO 10 where granted)'
+             if r.get('owner_priority') is None else
+             f'on SCHED_FIFO {r["owner_priority"]}' if r['owner_priority']
              else 'on the normal scheduler'))
     print('   line transactions outside the commands, at the probe (median ms, n): '
           + ', '.join(f'{k} {ms(statistics.median(d))} ({len(d)})'
@@ -924,8 +927,9 @@ def main() -> int:
                     help='commands per vendor (default: 200, RD4 150, X-MIND K 100)')
     ap.add_argument('--seconds', type=float, default=5.0, help='rate window [s]')
     ap.add_argument('--window', type=float, default=5.0, help='CPU window [s]')
-    ap.add_argument('--owner-priority', type=int, default=0,
-                    help='latency: the node with -p owner_thread_priority:=N (SCHED_FIFO)')
+    ap.add_argument('--owner-priority', type=int, default=None,
+                    help='latency: the node with -p owner_thread_priority:=N (SCHED_FIFO; 0: '
+                         'the normal scheduler; default: the node\'s own, 10)')
     ap.add_argument('--can-link', action='store_true',
                     help='Vector Step latency: a relay on the node\'s own link to the broker as '
                          'well (the X-PLUS MT\'s way of timing the frame); the broker\'s figures '

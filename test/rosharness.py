@@ -50,6 +50,11 @@ class DriveBench:
     wait_connected = True                     # the constructor returns once all are connected
     node_executable = ''                      # '' = <vendor>_node (the lifecycle one: ...)
     node_env: dict[str, str] = {}             # the node process's further environment
+    # The bus owners on the normal scheduler: here the simulators, the CAN broker and pytest
+    # share two cores with the nodes, and owners on SCHED_FIFO (the default, 10) would take the
+    # CPU from the drives they talk to, which real drives do not need. The test of the default
+    # sets this to ().
+    owner_priority_args: tuple[str, ...] = ('-p', 'owner_thread_priority:=0')
 
     def __init__(self, procs, ros, node_args=()):
         from diagnostic_msgs.msg import DiagnosticArray
@@ -64,7 +69,8 @@ class DriveBench:
             executable('stepper_drivers', self.node_executable or f'{self.vendor}_node'),
             '--ros-args',
             '--params-file', str(CONFIG / f'{self.vendor}.yaml'), *self.link_args(),
-            '-p', 'reconnect_period_s:=0.2', *self.node_extra_args, *node_args],
+            '-p', 'reconnect_period_s:=0.2', *self.owner_priority_args,
+            *self.node_extra_args, *node_args],
             env=self.node_env)
         ros.subscribe(JointState, '/joint_states', keep=True)
         ros.subscribe(DiagnosticArray, '/diagnostics')

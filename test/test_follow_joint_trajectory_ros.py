@@ -156,8 +156,12 @@ def test_a_dense_trajectory_finishes_within_moveits_limit_and_the_path_tolerance
     # reached its drive on a shared line (a poll or another drive's transactions may go
     # first): up to a poll period and a transaction, at the plan's top speed (point-to-point
     # segments, at most twice the trajectory's 1.875 x 2 rad / 3 s).
+    # The X-PLUS MT and Vector Step drivers have no estimate of a move's time (Drive.move_time_s,
+    # a fast link): until the node has timed one, a move's own transactions (about four) are
+    # lag on top.
     top_rad_s = 2 * 1.875 * 2.0 / duration_s
-    path_rad = top_rad_s * (setup.poll_s + setup.transaction_s)
+    untimed_s = 0.0 if setup.vendor in ('rd4', 'xmind_k') else 4 * setup.transaction_s
+    path_rad = top_rad_s * (setup.poll_s + setup.transaction_s + untimed_s)
     goal.path_tolerance = [JointTolerance(name=j, position=path_rad) for j in setup.joints]
     c = Client(setup.bench, goal)
     result = c.result(EXECUTION_SCALING * duration_s + EXECUTION_MARGIN_S + 5.0)

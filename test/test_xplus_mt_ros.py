@@ -596,7 +596,10 @@ def test_owner_thread_priority_runs_the_bus_owner_on_sched_fifo(procs, ros, tmp_
     and the node moves a drive as before; 0 turns it off. Where the machine refuses (no
     CAP_SYS_NICE, no rtprio limit), the node says so in one line naming the parameter and the
     limits file, and no thread is."""
-    bench = Bench(procs, ros, tmp_path, node_args=args)
+    class DefaultPriority(Bench):
+        owner_priority_args = ()                  # the shipped default
+
+    bench = DefaultPriority(procs, ros, tmp_path, node_args=args)
     fifo = {}
     for task in (pathlib.Path('/proc') / str(bench.node.pid) / 'task').iterdir():
         fields = (task / 'stat').read_text().rsplit(')', 1)[1].split()   # from field 3 on
