@@ -5,7 +5,7 @@ every poll period, from the bus owner thread whose caches are cold after each sl
 rclpy's message path (the Python object converted to C, then serialized by the rmw) cost
 350-360 us per 8-joint message against 250-260 us for these bytes published raw (50 Hz, a
 subscriber in another process; `scripts/bench_command_path.py --part cpu` for the node's
-share): at 50 Hz half a percent of a core, a third of what issue 9's CPU goal leaves above the
+share): at 50 Hz half a percent of a core, a third of what the CPU goal leaves above the
 bare polling loop. The names never change, so everything but the stamp and the numbers is
 encoded once.
 

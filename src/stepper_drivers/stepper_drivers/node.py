@@ -7,7 +7,7 @@ turns ROS into jobs and snapshots into ROS:
   it; they never wait. They belong to a hidden companion node (`_<node>_commands`, the pattern of
   tf2_ros's TransformListener) served by an executor thread of its own, whose wait set holds
   nothing else: a command is not delayed by rclpy scanning the node's ~80 services, actions and
-  event handlers, nor by a service callback (issue 9's command-to-wire goal). One thread serves
+  event handlers, nor by a service callback (the command-to-wire goal). One thread serves
   them, so the messages of one topic are handled in the order they arrived.
 - Services and actions are async callbacks: they enqueue a job and `await` its result (and then
   the polls they need) without holding an executor thread, so one SingleThreadedExecutor serves
@@ -402,7 +402,7 @@ class DriveNode(Node):
             stamp = self._stamp()
             self._publish_joint_states(stamp)
         # A status goes out when something in it changed, and at status_rate_hz otherwise:
-        # at 50 Hz the messages of idle drives cost more CPU than polling them (issue 9).
+        # at 50 Hz the messages of idle drives cost more CPU than polling them.
         counters = None
         for h in handles:
             key = self._status_key(h)
@@ -430,7 +430,7 @@ class DriveNode(Node):
         """/diagnostics from the owner thread that finds it due, not from an executor timer:
         each timer wake-up made rclpy rebuild its wait set over every service, action and
         event handler of the node (3 ms with 8 drives) in the thread that takes the commands
-        (issue 9's CPU figures in docs/benchmarks.md)."""
+        (the CPU figures in docs/benchmarks.md)."""
         with self._diag_lock:
             if now < self._diag_due:          # another bus's owner was first
                 return
@@ -440,7 +440,7 @@ class DriveNode(Node):
     def _stamp(self) -> TimeMsg:
         """The node clock's now as a message. Without simulated time that is the system
         clock, read directly: rclpy's Clock.now().to_msg() cost 60 us a cycle on the owner's
-        cold cache, half of it for a Time object thrown away (issue 9)."""
+        cold cache, half of it for a Time object thrown away."""
         clock = self.get_clock()      # a node's clock is ROS_TIME: system time unless ...
         if clock.clock_type != ClockType.ROS_TIME or clock.ros_time_is_active:
             return clock.now().to_msg()            # ... use_sim_time: the /clock topic's time
@@ -464,7 +464,7 @@ class DriveNode(Node):
     def _publish_joint_states(self, stamp) -> None:
         """One JointState for every drive of the node, as CDR bytes published raw (encoded
         under _js_lock: owner threads of several buses take turns): rclpy's message path cost
-        about 100 us more per message on the owner's cold cache (joint_state_cdr.py; issue 9's
+        about 100 us more per message on the owner's cold cache (joint_state_cdr.py; the
         CPU figures in docs/benchmarks.md)."""
         with self._js_lock:
             cdr, handles = self._js_cdr, self._js_handles
@@ -566,7 +566,7 @@ class DriveNode(Node):
     def _key_values(self, status: str, items) -> list[KeyValue]:
         """KeyValues for (key, value) items, reusing those whose value is unchanged since the
         last message (under _diag_lock). Built anew, the ~200 of 8 drives took 3.7 ms per
-        message (issue 9)."""
+        message."""
         cache = self._diag_kv.setdefault(status, {})
         out = []
         for k, v in items:

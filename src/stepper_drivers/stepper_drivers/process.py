@@ -4,7 +4,7 @@ Why the node takes SIGINT and SIGTERM itself, not rclpy: rclpy's handler wakes t
 and shuts the context down one after the other, from its own thread. An executor woken in
 between finds the context still valid, waits again, and nothing wakes it any more: the node
 never ends, and its drives are not stopped. rclpy's own timers hide this; this node has none
-(its executor sleeps until a command comes, issue 9's CPU figures). Measured under a CPU load
+(its executor sleeps until a command comes: CPU, docs/benchmarks.md). Measured under a CPU load
 (scripts/check_signal_race.py): a plain rclpy node without a timer missed SIGTERM in 4 of 300
 starts; the same node spun by spin_node, in none of 300.
 
@@ -54,7 +54,7 @@ def spin_node(node) -> int:
             or not shutdown_signals_blocked():
         raise RuntimeError('spin_node: call block_shutdown_signals() first, in the main thread')
     # Every callback only checks and enqueues, or awaits: one thread serves them all, with
-    # the shortest publish-to-callback time (issue 9: 4 threads gave 12-120 ms p99 on 2 cores).
+    # the shortest publish-to-callback time (4 threads gave 12-120 ms p99 on 2 cores).
     executor = SingleThreadedExecutor(context=node.context)
     executor.add_node(node)
     # The owner threads wait on the bus and then need the GIL back from the executor thread:

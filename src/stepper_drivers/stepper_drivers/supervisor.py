@@ -10,7 +10,7 @@ Threads and what they own:
   A command submitted with `hand_over=True` to a sleeping owner also waits (GIL released, at
   most HAND_OVER_MAX_S) until the owner has taken it: the GIL goes to the owner at once.
 
-Order (issue 9 item 1):
+Order:
 - Jobs of one drive run in the order submitted, one at a time; a step-wise job (a generator, see
   drive.py) keeps the drive until it ends, while other drives' jobs and polls run between its
   steps, so nobody waits behind a long operation.
@@ -20,7 +20,7 @@ Order (issue 9 item 1):
   drop the drive's queued motion jobs (which would move after the stop) and cut its running
   motion job short, and reach the wire after at most the one transaction already in flight.
 
-The velocity watchdog (issue 9 item 3): `arm_watchdog()` is called when a velocity command is
+The velocity watchdog: `arm_watchdog()` is called when a velocity command is
 accepted, before anything is written; only a job submitted with `disarms=True` (a stop, a
 position or homing command) that the drive confirmed disarms it. A refusal, a lost reply or a link
 loss leaves it armed; after a reconnect an expired deadline stops the drive at once. It is checked
@@ -362,7 +362,7 @@ class BusSupervisor:
         stop; a poll overdue by a period once MAX_JOBS_BEFORE_OVERDUE_POLL jobs went first; the
         next step of a running operation; the oldest waiting command; the next step of a poll;
         a due reconnect; the longest-due poll. One pass over the slots (it runs before every
-        transaction: issue 9's CPU budget)."""
+        transaction: the CPU budget, docs/benchmarks.md)."""
         now = self.clock()
         if self._urgent:                   # (a deque's truth needs no lock; the pop does)
             with self._cv:

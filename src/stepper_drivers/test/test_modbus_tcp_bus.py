@@ -168,7 +168,7 @@ def test_silent_server_times_out_then_reopens():
 
 def test_a_connection_reset_by_the_peer_is_a_link_error_in_one_line():
     """A server that accepts and then resets (RST) the connection: pymodbus lets the
-    ConnectionResetError through, which used to end in a traceback (issue 10 item 8)."""
+    ConnectionResetError through, which would end in a traceback."""
     import struct
     with socket.socket() as listener:
         listener.bind(('127.0.0.1', 0))

@@ -91,7 +91,7 @@ def test_no_drive_is_refused(tmp_path):
 
 
 def test_a_params_file_for_another_node_says_so(tmp_path):
-    """The symptom of issue 10 item 1: rd4_node started with config/xplus_mt.yaml."""
+    """A params file of another vendor: rd4_node started with config/xplus_mt.yaml."""
     with pytest.raises(ParameterError, match=r'parameter drives: not set, and no parameter is '
                        r'given for node /n \(a params file configures the node named by its '
                        r'top-level key: n: or /\*\*:\)'):

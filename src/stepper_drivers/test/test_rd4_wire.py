@@ -1,6 +1,6 @@
 """Rd4Drive + ModbusRtuBus against rd4_sim's RtuLine on a real pty: the node's frames on the
 wire, retries and counters, alarms, preset, save; the step-wise operations (drive.py contract);
-issue 9 (garbage content with a valid CRC), identity, motion refused unless enabled on the wire,
+garbage content with a valid CRC, identity, motion refused unless enabled on the wire,
 the unit's own watchdog, transport failures.
 
 Expected frames are literals from spec/lika_rd4.md §11.2 where it has them; the others get their
@@ -413,7 +413,7 @@ def test_every_step_is_one_transaction_and_a_stop_goes_between_the_reads_of_a_po
     assert 'Work speed [0x0D]' in st.fault_text
 
 
-# --------------------------------------------------------------------- issue 9: garbage content
+# ------------------------------------------------------------------------------ garbage content
 def cw_writes(frames):
     """Values written to Control Word [0x2A] (FC06, or FC16 covering it), in order."""
     out = []
@@ -440,7 +440,7 @@ def run_all(ops):
     return outcomes
 
 
-def test_issue9_garbage_replies_never_make_the_driver_write_an_uncommanded_control_word(rig):
+def test_garbage_replies_never_make_the_driver_write_an_uncommanded_control_word(rig):
     """Another device answers at node 1 (valid CRC, its own register contents), while the real
     unit still takes the writes. The driver reconnects, polls and is told to stop, over and
     over: the only Control Word it ever writes is the stop it was told to send; nothing

@@ -633,7 +633,7 @@ def test_a_snapshot_is_coherent_on_a_10_kbit_bus(tmp_path):
     """At 10 kbit/s one TxPDO takes up to 13.5 ms on the wire, and the two drives' bursts
     interleave by COB-ID priority: axis1's position (0x281) comes 27 ms after its new statusword
     (0x181), its homed flag (0x481) 81 ms after. A snapshot taken in between must wait for them
-    (a fixed 20 ms wait paired 'target reached' with the old position: issue 10 item 3). The
+    (a fixed 20 ms wait paired 'target reached' with the old position). The
     monitor plays both nodes; the pauses between its frames are the wire time."""
     bench = Bench(tmp_path, **{'can.bitrate': 10000})
     try:

@@ -438,7 +438,7 @@ def test_a_lost_ps_answer_is_taken_as_a_started_program(rig):
     assert '99EE' in rig.wire
 
 
-# --------------------------------------------------------------- issue 9: enabled, ranges
+# ---------------------------------------------------------------------- enabled, ranges
 def test_home_and_motion_need_the_drive_enabled(rig):
     d = rig.drives['a1']
     for method in (3, 60):
@@ -555,7 +555,7 @@ def test_connect_identity_errors_name_the_configuration_and_survive_line_noise(t
         r.close()
 
 
-# ---------------------------------------------------------------- issue 10: power cycles
+# ------------------------------------------------------------------------- power cycles
 def lose_the_link_and_power_cycle(rig, d, power_cycle=True):
     rig.line.set_link_fault('cut')
     with pytest.raises(LinkError):

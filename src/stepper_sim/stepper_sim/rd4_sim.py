@@ -116,7 +116,7 @@ class Rd4Unit:
         self.following_error = 0
         self.temperature_c = TEMPERATURE_C
         self.saves = 0
-        # Another device answering at this node ID (issue 9): read replies carry its words,
+        # Another device answering at this node ID: read replies carry its words,
         # with a valid CRC; writes still reach this unit. None = off, 0 = until clear_fault.
         self.garbage_reads: int | None = None
         self._garbage = random.Random(0)

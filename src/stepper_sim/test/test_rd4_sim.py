@@ -145,7 +145,7 @@ def test_silence_for_bad_crc_broadcast_other_node_and_garbage(line, client):
 
 
 def test_garbage_reads_have_a_valid_crc_and_writes_still_act(line, client):
-    """Fault 'garbage_reads' (issue 9): another device's words in the next `code` read replies,
+    """Fault 'garbage_reads': another device's words in the next `code` read replies,
     CRC valid (seeded, so reproducible); the writes still reach the unit."""
     import random
     from stepper_drivers.protocol.modbus_rtu import add_crc

@@ -6,11 +6,11 @@ modbus.ModbusExceptionError (a drive.DriveError) for an exception reply (the lin
 device said no). Reconnecting is the caller's job: after a LinkError it calls close(), later
 open().
 
-Why by hand and not pymodbus's ModbusTcpClient (used here until issue 9): its sync transaction
+Why by hand and not pymodbus's ModbusTcpClient: its sync transaction
 path (transaction manager, framer, PDU classes, a trace hook per request) costs about 30 us of
 Python per transaction on top of the socket calls: 92 us of CPU per FC03 of 21 registers against
 64 us for the same exchange on a plain socket (loopback, the project machine). With 8 drives at
-50 Hz that was most of the node's distance from issue 9's CPU goal (docs/benchmarks.md). The
+50 Hz that was most of the node's distance from its CPU goal (docs/benchmarks.md). The
 frame is 7 bytes; pymodbus still provides the exception codes (protocol/modbus.py) and plays
 the device in the tests (test_modbus_tcp_bus.py runs against its ModbusTcpServer).
 """

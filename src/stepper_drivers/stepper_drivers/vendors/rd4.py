@@ -11,8 +11,8 @@ unit's poll, never behind a whole operation. stop() and disable() are one transa
 
 Control Words are composed from the driver's intent (enabled or not, the commanded Start or Jog,
 Stop held low after a stop, the outputs a raw write set), never from a Control Word read from
-the unit (issue 9: a reply with a valid CRC but another device's content was written back and
-started a jog). Alarms and Status word are examined before anything is based on them: bits the
+the unit (a reply with a valid CRC but another device's content, written back, would start a
+jog). Alarms and Status word are examined before anything is based on them: bits the
 manual marks "Not used", or an Alarm status bit that contradicts the Alarms register, make the
 reply implausible (LinkError, the node reconnects; connect() then checks the identity).
 
