@@ -170,13 +170,10 @@ class Run:
     def desired_steps(self, t: float) -> dict[str, float]:
         """Where each joint of the trajectory should be at monotonic time t (the planned
         trapezoids, each from when its move reaches the drive)."""
-        return self._desired(t)[0]
+        return self.desired(t)[0]
 
-    def desired_velocity_steps_s(self, t: float) -> dict[str, float]:
-        """The planned velocity of each joint at monotonic time t."""
-        return self._desired(t)[1]
-
-    def _desired(self, t: float) -> tuple[dict[str, float], dict[str, float]]:
+    def desired(self, t: float) -> tuple[dict[str, float], dict[str, float]]:
+        """The planned position and velocity of each joint at monotonic time t."""
         clock_s = t - self.start_t
         pos = dict(self.start_steps)
         vel = {j: 0.0 for j in self.start_steps}
@@ -384,7 +381,7 @@ class Run:
                 if velocity is None:
                     continue                   # refused at the goal: the drive reports none
                 _, at = axis.sample()
-                err = velocity - self.desired_velocity_steps_s(min(at, now)).get(joint, 0.0)
+                err = velocity - self.desired(min(at, now))[1].get(joint, 0.0)
                 if abs(err) > tol:
                     self._stop_axes()
                     return _aborted(PATH_TOLERANCE_VIOLATED,

@@ -285,8 +285,9 @@ class TrajectoryInterface:
             # desired at the time of the snapshot `actual` comes from (up to a poll period old):
             # the error is then the drive's following error, not the age of the snapshot
             t = h.slot.state_t
-            want = h.conv.from_steps(run.desired_steps(t)[joint])
-            want_v = h.conv.from_steps(run.desired_velocity_steps_s(t)[joint])
+            positions, velocities = run.desired(t)
+            want = h.conv.from_steps(positions[joint])
+            want_v = h.conv.from_steps(velocities[joint])
             s = h.state
             have_v = h.conv.from_steps(s.velocity_steps_s) if s.velocity_valid else math.nan
             d.positions.append(float(want))

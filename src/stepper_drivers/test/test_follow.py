@@ -111,8 +111,8 @@ def test_a_newer_trajectory_replaces_the_rest_of_the_old_from_its_start(rig):
     assert abs(true_steps(sim, 'j1')) <= 2
     # j2 is not in the newer one: it stops at the take-over (its ramp from where the old plan
     # had it then: later on a loaded machine, so further), it never goes to 40000
-    at = old.desired_steps(new.start_t)['j2']
-    v = old.desired_velocity_steps_s(new.start_t)['j2']
+    positions, velocities = old.desired(new.start_t)
+    at, v = positions['j2'], velocities['j2']
     brake = v * v / (2 * 0.7 * LIMITS.max_acceleration_steps_s2)      # the plan's ramps
     assert abs(true_steps(sim, 'j2') - at) < brake + 1000
     assert true_steps(sim, 'j2') < 20_000
