@@ -238,14 +238,14 @@ class Run:
                 return problem
             if self._replaced_at is not None and clock() >= self._replaced_at:
                 return _aborted(SUCCESSFUL, REPLACED)
-            # The moves go out back to back. An axis that a snapshot since the segment's start
-            # shows still on its way to the point before (it arrived late), further than
-            # ARRIVED_FRACTION of that segment's distance, gets its move once it stands there,
-            # so that it passes the point; one that is there, or whose last snapshot is older
-            # (on a serial line up to a poll period: waiting for it would make every segment
-            # late), takes the new target at once (on the way where its drive can: RD4 position
-            # override, X-PLUS MT and Vector Step change set immediately). A drive that takes no
-            # command while it runs (X-MIND K) waits in until_ready_for_move for a run that ends.
+            # The moves go out back to back. An axis still on its way to the point before (it
+            # arrived late, _still_on_the_way) gets its move once it stands there, so that it
+            # passes the point; one that is there, or was on plan at its last snapshot (on a
+            # serial line up to a poll period old: waiting for a newer one would make every
+            # segment late), takes the new target at once (on the way where its drive can: RD4
+            # position override, X-PLUS MT and Vector Step change set immediately). A drive that
+            # takes no command while it runs (X-MIND K) waits in until_ready_for_move for a run
+            # that ends.
             end_t = self.start_t + seg.end_s
             waiting = [m for m in seg.moves if m.joint not in self.streamed]
             while waiting:
@@ -295,15 +295,23 @@ class Run:
                 return _aborted(GOAL_TOLERANCE_VIOLATED, '; '.join(far))
             self._cancel.wait(TICK_S)
 
-    @staticmethod
-    def _still_on_the_way(axis: Axis, seg_t: float, target: float, start: float | None) -> bool:
-        """A snapshot taken since seg_t shows the axis moving and short of `target` (its last
-        move's, from `start`) by more than ARRIVED_FRACTION of that move's distance."""
+    def _still_on_the_way(self, axis: Axis, seg_t: float, target: float,
+                          start: float | None) -> bool:
+        """The axis is short of `target` (its last move's, from `start`) by more than
+        ARRIVED_FRACTION of that move's distance: as a snapshot since seg_t shows it moving, or,
+        where the last snapshot is older, as that one was behind the plan by as much (then the
+        drive is polled at once, and the next check has a snapshot since seg_t)."""
         position, at = axis.sample()
-        if at < seg_t or not axis.moving():
+        if not axis.moving():
             return False
         distance = abs(target - start) if start is not None else 0.0
-        return abs(target - position) > max(ARRIVED_STEPS, ARRIVED_FRACTION * distance)
+        short = max(ARRIVED_STEPS, ARRIVED_FRACTION * distance)
+        if at >= seg_t:
+            return abs(target - position) > short
+        if abs(self.desired_steps(at)[axis.joint] - position) <= short:
+            return False                     # on plan then: it arrives with the plan
+        axis.sup.poll_soon(axis.drive_name)
+        return True
 
     def _move_job(self, axis: Axis, move, from_steps: float, seg_t: float, end_t: float
                   ) -> Callable:
