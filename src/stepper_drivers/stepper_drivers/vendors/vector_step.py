@@ -497,7 +497,11 @@ class VectorStepDrive(Drive):
                 for index, sub, _bits in self._tpdo_entries.get(cob, ()):
                     if index != vm.STATUSWORD:
                         yield 0.0
-                        values[index] = self.link.read(index, sub)
+                        value = self.link.read(index, sub)
+                        # the late TxPDO itself came during the upload: its values are as new
+                        # (an older upload written over them would stay until the next change)
+                        if self._pdo_statusword.get(cob) != newest:
+                            values[index] = value
             self._position_rx = None          # the position is the SDO's: current
 
     def _seed(self) -> Steps[None]:
