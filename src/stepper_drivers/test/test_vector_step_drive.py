@@ -462,6 +462,61 @@ def test_a_snapshot_waits_for_the_rest_of_a_statusword_burst(bench, monkeypatch)
     assert time.monotonic() - start < 0.3
 
 
+def test_the_state_machine_reads_the_statusword_of_txpdo1_not_of_an_overtaken_txpdo(bench):
+    """Every TxPDO carries the statusword, and TxPDO1 has the node's highest priority: on a busy
+    bus (or with several transmit buffers in the drive) the TxPDO1 of a new state overtakes the
+    TxPDO2..4 still queued from the state before. Those late frames must not set the state back
+    (bring_to would write the controlword of a state the drive has left)."""
+    d = bench.connect('axis1')
+    bench.sim.nodes['axis1'].link_cut = True           # the monitor plays node 1
+    ready, enabled = 0x0631, 0x0637
+
+    def frames(sw, position):
+        return {0x181: struct.pack('<Hb', sw, vm.MODE_PROFILE_POSITION),
+                0x281: struct.pack('<Hi', sw, position),
+                0x381: struct.pack('<Hi', sw, 0),
+                0x481: struct.pack('<HHB', sw, 0, 0)}
+
+    bench.monitor.send(0x701, b'\x05')
+    for cob, data in frames(ready, 100).items():
+        bench.monitor.send(cob, data)
+    wait(lambda: snap(d).position_steps == 100, what="the monitor's TxPDOs")
+    bench.monitor.send(0x181, frames(enabled, 100)[0x181])     # the new state first
+    for cob in (0x281, 0x381, 0x481):                         # then the old burst's rest
+        bench.monitor.send(cob, frames(ready, 101)[cob])
+    wait(lambda: d._values().get(vm.POSITION_ACTUAL_VALUE) == 101, what='the late TxPDO2')
+    wait(lambda: d._pdo_statusword.get(0x481) == ready, what='the late TxPDO4')
+    assert d._read_statusword() == enabled
+    assert d._values()[vm.STATUSWORD] == enabled
+
+
+def test_enable_ends_in_operation_enabled_when_txpdo2_to_4_lag(tmp_path):
+    """The simulator sends TxPDO2..4 0.2 s after TxPDO1 (a slow bus): after enable and after
+    disable, the drive's state as read_state() and the drive's own statusword (SDO) show stays
+    the one reached, while the late frames of the states passed on the way come in."""
+    sim = VectorStepSim([NodeConfig('axis1', 4)], interface='virtual', channel='vs_lag',
+                        reboot_delay_s=0.02, tpdo_lag_s=0.2)
+    sim.start()
+    bus = vs.make_bus(params(**{'can.interface': 'virtual', 'can.channel': 'vs_lag'}))
+    try:
+        bus.open()
+        d = vs.make_drive(bus, 'axis1', params(node_id=4, **{'can.interface': 'virtual'}))
+        wait(lambda: sim.nodes['axis1'].nmt_state == 0x7F)
+        complete(d.connect())
+        for _ in range(3):
+            for step, want in ((d.enable, State.OPERATION_ENABLED),
+                               (d.disable, State.SWITCH_ON_DISABLED)):
+                complete(step())
+                end = time.monotonic() + 0.4                  # the late frames: 0.2 s after
+                while time.monotonic() < end:
+                    assert snap(d).state == want
+                    time.sleep(0.005)
+                assert cia402.decode_state(int(d.link.read(vm.STATUSWORD))) == want
+    finally:
+        bus.close()
+        sim.stop()
+
+
 # --- step-wise operations (drive.Steps) --------------------------------------------------------
 def steps_transactions(bus, steps):
     """Run a step-wise operation by hand; the bus transactions of each step (SDO + RxPDO)."""

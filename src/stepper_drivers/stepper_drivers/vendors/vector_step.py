@@ -217,6 +217,7 @@ class VectorStepDrive(Drive):
         self._pdo_statusword: dict[int, int] = {}    # COB-ID -> statusword of its last TxPDO
         self._statusword_seen = (0, 0.0)             # (newest TxPDO statusword, when it came)
         self._position_cob = vm.PDO_COB_BASES_TX[POSITION_TPDO - 1] + self.node_id
+        self._state_cob = vm.PDO_COB_BASES_TX[0] + self.node_id      # TxPDO1
         self._position_rx: tuple[float, int] | None = None   # (reception, position): last TxPDO2
         self._tpdo_entries: dict[int, tuple] = {}     # COB-ID: what that TxPDO maps
         self._burst_given_up: int | None = None
@@ -238,8 +239,10 @@ class VectorStepDrive(Drive):
         return node.tpdo_values
 
     def _read_statusword(self) -> int:
+        """The newest statusword: TxPDO1's (see _on_tpdo)."""
         self.can.check()
-        return int(self._values().get(vm.STATUSWORD, 0))
+        sw = self._pdo_statusword.get(self._state_cob)
+        return int(self._values().get(vm.STATUSWORD, 0)) if sw is None else sw
 
     def _write_controlword(self, cw: int) -> None:
         """Send the controlword by RxPDO: RxPDO1 with a mode, RxPDO3 with a JOG speed, else
@@ -459,13 +462,22 @@ class VectorStepDrive(Drive):
         self.link.watch_tpdos()
 
     def _on_tpdo(self, pdo_map) -> None:
-        # (receive thread) every DRIVER_TPDOS mapping starts with the statusword
+        """(receive thread, after canopen's cache update) Every DRIVER_TPDOS mapping starts with
+        the statusword, and a change of it sends all four, TxPDO1 first: TxPDO1 has the node's
+        lowest COB-ID, so it also overtakes the TxPDO2..4 of the state before when they still
+        wait for the bus (a slow or busy bus; a drive with several transmit buffers). The
+        statusword of TxPDO1 is therefore the newest: the cache keeps it, whatever a later
+        TxPDO2..4 carried, and the others only tell whether their burst is complete."""
         sw = int.from_bytes(bytes(pdo_map.data[:2]), 'little')
         self._pdo_statusword[pdo_map.cob_id] = sw
         if pdo_map.cob_id == self._position_cob:       # statusword, then the position (i32)
             self._position_rx = (time.monotonic(),
                                  int.from_bytes(bytes(pdo_map.data[2:6]), 'little', signed=True))
-        if sw != self._statusword_seen[0]:
+        if pdo_map.cob_id != self._state_cob:
+            newest = self._pdo_statusword.get(self._state_cob)
+            if newest is not None:
+                self._values()[vm.STATUSWORD] = newest
+        elif sw != self._statusword_seen[0]:
             self._statusword_seen = (sw, time.monotonic())
 
     def _coherent(self) -> bool:
@@ -559,7 +571,7 @@ class VectorStepDrive(Drive):
         self._check_alive()
         yield from self._wait_for_burst()
         values = self._values()
-        sw = int(values.get(vm.STATUSWORD, 0))
+        sw = self._read_statusword()
         mode = int(values.get(vm.MODES_OF_OPERATION_DISPLAY, 0))
         rstsflg = int(values.get(vm.RSTSFLG, 0))
         position = int(values.get(vm.POSITION_ACTUAL_VALUE, 0))
@@ -911,7 +923,7 @@ class VectorStepDrive(Drive):
             self.link.emcy = None                # an earlier run's alarm
         self._command(CW_ENABLE_OPERATION | vm.CW_BIT_IP_ENABLE)
         ok = yield from self.link.wait(
-            lambda: self._value(vm.STATUSWORD) & vm.SW_BIT_IP_ACTIVE, IP_START_TIMEOUT_S)
+            lambda: self._read_statusword() & vm.SW_BIT_IP_ACTIVE, IP_START_TIMEOUT_S)
         if not ok:
             sw = self._barrier()
             if not sw & vm.SW_BIT_IP_ACTIVE:
