@@ -438,6 +438,25 @@ def test_a_lost_ps_answer_is_taken_as_a_started_program(rig):
     assert '99EE' in rig.wire
 
 
+def test_a_late_ps_answer_is_waited_for_as_long_as_a_repeated_strings_last_try(rig):
+    """PS has one try: its Y, late by more than timeout_s (a loaded host, a USB adapter's
+    latency timer), is taken within the slack a repeated string has at its last try
+    (timeout_s x (1 + 4 retries)), instead of failing the command with a lost link."""
+    d = rig.drives['a1']
+    complete(d.enable())
+    steps = d.set_velocity(3000.0, FAST)
+    for _ in range(3):                         # QO,FA, QO,F7, WN
+        next(steps)
+    late_s = 3 * BUS['timeout_s']              # beyond one try's slack, within the last one's
+    assert BUS['timeout_s'] < late_s < rig.bus.last_try_slack_s
+    rig.line.set_link_fault('late_reply', 1, delay_s=late_s)
+    t0 = time.monotonic()
+    complete(steps)
+    assert time.monotonic() - t0 >= late_s
+    assert d.in_motion and rig.sim().busy
+    assert rig.bus.silences == 0
+
+
 # ---------------------------------------------------------------------- enabled, ranges
 def test_home_and_motion_need_the_drive_enabled(rig):
     d = rig.drives['a1']

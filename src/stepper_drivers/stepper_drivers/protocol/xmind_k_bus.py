@@ -82,6 +82,12 @@ class XmindKBus(drive.Bus):
             raise LinkError(str(e)) from None
         self.broadcasts += 1
 
+    @property
+    def last_try_slack_s(self) -> float:
+        """The slack of the last repeat of a string sent 1 + retries times: what one string
+        that is never repeated (PS) gets at its only try."""
+        return self.slack_s * (1 + RETRY_SLACK_FACTOR * self.retries)
+
     def request(self, frame: xk.Frame, rd_ms: float | None, tries: int | None = None,
                 retry_silence: bool = True, slack_s: float | None = None
                 ) -> xk.Frame | None:

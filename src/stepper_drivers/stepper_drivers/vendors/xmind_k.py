@@ -305,12 +305,13 @@ class XmindKDrive(drive.Drive):
             raise DriveError(f'drive {self.number:02d} answered {answer} to {code}')
 
     def _launch(self, cell: int, make_job: Callable[[float], Job]) -> None:
-        """PS: never repeated (a lost Y would make the repeat land on a busy drive). The job
-        is recorded before PS leaves: a lost answer is taken as a started program (the bus
-        then closes with 99EE), §3."""
+        """PS: never repeated (a lost Y would make the repeat land on a busy drive), so its one
+        try waits as long as the last repeat of another string would: a Y late by a hiccup of
+        the adapter or the host is still taken. The job is recorded before PS leaves: a lost
+        answer is taken as a started program (the bus then closes with 99EE), §3."""
         self.job = make_job(time.monotonic())
         try:
-            answer = self._ask('PS', cell, tries=1)
+            answer = self._ask('PS', cell, tries=1, slack_s=self.bus.last_try_slack_s)
         except GarbledAnswer:
             answer = xk.Frame(self.number, 'Y')   # the drive refuses PS only for syntax
         if answer is None:
