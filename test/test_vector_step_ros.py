@@ -250,6 +250,23 @@ def test_save_params_is_verified_by_rloadsav(rig):
     assert '170000' in stored[0].read_text()
 
 
+def test_can_error_frames_show_in_the_status_alarms_and_the_link_diagnostics(rig):
+    """An error frame the CAN interface reports (socketcand forwards the controller's): every
+    drive's status names it among its alarms, and the link entry of /diagnostics goes to WARN
+    with it, its count in the link's values."""
+    rig.broker.error_frame(0x004)                   # CAN_ERR_CRTL: controller problems
+    want = 'CAN error frames within 10 s, last: controller'
+    for drive in ('axis1', 'axis2'):
+        rig.status(drive, lambda m: want in m.alarms, what=f'{drive}: the error frame alarm')
+
+    def link_warns(arr):
+        return any(s.name.endswith('link') and s.level == DiagnosticStatus.WARN
+                   and s.message == want
+                   and {kv.key: kv.value for kv in s.values}.get('error_frames') == '1'
+                   for s in arr.status)
+    rig.ros.wait_msg('/diagnostics', link_warns, 10.0, 'link WARN with the error frame')
+
+
 def sdo_statusword(port: int, node_id: int) -> int:
     """Ask a drive directly (expedited upload of 0x6041) with a raw python-can client."""
     bus = can.Bus(interface='socketcand', host='127.0.0.1', port=port, channel='can0',

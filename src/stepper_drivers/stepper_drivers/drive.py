@@ -198,6 +198,12 @@ class Bus(abc.ABC):
         """Link counters shown in status and diagnostics; vendors may add their own keys."""
         return {'transactions': self.transactions, 'errors': self.errors}
 
+    def health(self) -> tuple[str, str] | None:
+        """Trouble of the link itself that its drives' states do not show (a CAN controller's
+        error frames, bus-off): ('warn' or 'error', text), or None. The node raises the
+        link's /diagnostics level by it and adds the text to each drive's status alarms."""
+        return None
+
 
 class Drive(abc.ABC):
     """One drive on a bus. Construct with the bus, the drive's name and its vendor parameters.

@@ -484,7 +484,7 @@ class DriveNode(Node):
         """The status fields that make a new status worth sending (not the link counters)."""
         s = h.state
         return (s, h.slot.connected, h.slot.not_driven, h.commands_refused, h.last_refusal,
-                h.sup.watchdog_armed(h.name))
+                h.sup.watchdog_armed(h.name), h.sup.bus.health())
 
     def _status_msg(self, h: DriveHandle, stamp, counters: dict[str, int]) -> DriveStatus:
         s = h.state
@@ -500,6 +500,9 @@ class DriveNode(Node):
         m.mode = s.mode
         m.fault, m.fault_code, m.fault_text = s.fault, s.fault_code & 0xFFFFFFFF, s.fault_text
         m.alarms = list(s.alarms)
+        link = h.sup.bus.health()
+        if link is not None:
+            m.alarms.append(link[1])
         m.status_word = s.status_word & 0xFFFFFFFF
         m.position_steps = int(s.position_steps)
         m.velocity_steps_s = float(s.velocity_steps_s)
@@ -531,6 +534,12 @@ class DriveNode(Node):
                 link.message = f'{", ".join(lost)} DISCONNECTED, reconnecting'
             else:
                 link.level, link.message = DiagnosticStatus.ERROR, 'DISCONNECTED, reconnecting'
+            health = sup.bus.health()
+            if health is not None:
+                level = DiagnosticStatus.ERROR if health[0] == 'error' else DiagnosticStatus.WARN
+                link.message = health[1] if link.level == DiagnosticStatus.OK else \
+                    f'{link.message}; {health[1]}'
+                link.level = max(link.level, level)
             link.values = self._key_values(link.name, [
                 *sup.bus.counters().items(),
                 ('reconnects', sum(max(sup.slots[n].reconnects - 1, 0) for n in names))])

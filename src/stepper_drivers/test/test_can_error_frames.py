@@ -68,3 +68,20 @@ def test_socketcan_error_frames_are_decoded_and_bus_off_is_logged_at_once(
     passive, bus_off = warnings_of(caplog)
     assert 'reports controller, TX error passive (0x004 [8] 00 20 00 00 00 00 80 00' in passive
     assert 'reports BUS-OFF (0x040 [8]' in bus_off and '2 error frames so far' in bus_off
+
+
+def test_health_warns_after_error_frames_and_is_an_error_after_bus_off(link, monkeypatch):
+    """health(): what the node adds to the link's /diagnostics level and to the drives' alarms,
+    for HEALTH_WINDOW_S after the last such frame, then nothing."""
+    bus, peer = link
+    monkeypatch.setattr(canopen_link, 'SOCKETCAN_ERROR_INTERFACES', ('virtual',))
+    monkeypatch.setattr(canopen_link, 'HEALTH_WINDOW_S', 0.5)
+    assert bus.health() is None
+    peer.send(error_frame(0x004, bytes([0, 0x20, 0, 0, 0, 0, 0x80, 0])))     # TX passive
+    wait_for(lambda: bus.health() is not None, 5.0, 'error passive in health()')
+    assert bus.health() == ('warn', 'CAN error frames within 0.5 s, last: controller, '
+                                    'TX error passive')
+    peer.send(error_frame(0x040))                                            # bus-off
+    wait_for(lambda: bus.health()[0] == 'error', 5.0, 'bus-off in health()')
+    assert 'bus-off' in bus.health()[1]
+    wait_for(lambda: bus.health() is None, 0.5 + 1.0, 'health clear after the window')

@@ -236,6 +236,22 @@ class SocketcandBroker:
                 self.frames_out += 1
 
 
+    def error_frame(self, error_class: int, channel: str = 'can0') -> None:
+        """Send every client on `channel` an error frame, as socketcand forwards the SocketCAN
+        controller's (`< error <class> <time> >`; error_class: the CAN_ERR_* bits of
+        linux/can/error.h, 0x040 bus-off). From any thread."""
+        now = time.time()
+        frame = f'< error {error_class:03X} {int(now)}.{int(now % 1 * 1e6):06d} >'
+
+        def put() -> None:
+            for client in self._clients:
+                if client.raw and client.channel == channel:
+                    client.queue.put_nowait(frame)
+        if self._loop is None:
+            raise RuntimeError('the broker is not running')
+        self._loop.call_soon_threadsafe(put)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description='Loopback socketcand (rawmode) CAN broker for tests')
     ap.add_argument('--host', default='127.0.0.1', help='loopback only (default 127.0.0.1)')

@@ -61,6 +61,8 @@ NMT_STATES = {0x00: 'BOOT-UP', 0x04: 'STOPPED', 0x05: 'OPERATIONAL', 0x7F: 'PRE-
 SYNC_COB_ID = 0x080            # 0x1005 default ("0x80 or 0x80000080")
 PERIODIC_JOIN_MARGIN_S = 0.5   # close() waits a cyclic task's period plus this for its thread
 GARBAGE_LOG_PERIOD_S = 10.0    # one log line per COB-ID and period for frames that do not fit
+# An error frame or a bus-off shows in /diagnostics and the drives' status alarms this long.
+HEALTH_WINDOW_S = 10.0
 # Error frames in SocketCAN's encoding (linux/can/error.h): the error class bits in the CAN ID,
 # controller details in data[1]. python-can's socketcan and socketcand interfaces deliver them so
 # (is_error_frame); other interfaces encode theirs in their own way: counted, not decoded.
@@ -164,6 +166,9 @@ class CanBus(Bus):
                                       'bootups': 0, 'garbage_rx': 0, 'error_frames': 0,
                                       'bus_off': 0}
         self._error_frame_logged = -GARBAGE_LOG_PERIOD_S
+        # (monotonic time, words) of the last error frame and of the last bus-off (health())
+        self._last_error_frame: tuple[float, str] | None = None
+        self._last_bus_off: float | None = None
         if interface == 'socketcand':
             self.description = f'CAN socketcand {host}:{port} {channel}'
         else:
@@ -318,15 +323,33 @@ class CanBus(Bus):
         self.extra['error_frames'] += 1
         decoded = self.interface in SOCKETCAN_ERROR_INTERFACES
         bus_off = decoded and bool(can_id & CAN_ERR_BUSOFF)
+        now = time.monotonic()
+        what = error_frame_text(can_id, data) if decoded else 'an error frame'
+        self._last_error_frame = (now, what)
         if bus_off:
             self.extra['bus_off'] += 1
-        now = time.monotonic()
+            self._last_bus_off = now
         if bus_off or now - self._error_frame_logged >= GARBAGE_LOG_PERIOD_S:
             self._error_frame_logged = now
-            what = error_frame_text(can_id, data) if decoded else 'an error frame'
             logger.warning('%s: link error: the CAN interface reports %s (0x%03X [%d] %s; %d '
                            'error frames so far)', self.description, what, can_id, len(data),
                            data.hex(' '), self.extra['error_frames'])
+
+
+    def health(self) -> tuple[str, str] | None:
+        """An error frame within the last HEALTH_WINDOW_S: 'warn' (the controller saw errors:
+        wiring, termination, a bit rate that differs); a bus-off: 'error' (the controller
+        stopped sending until it recovers: no SYNC, no command reaches a drive). The text stays
+        the same while it lasts (a status goes out when its alarms change); the counts are in
+        counters()."""
+        now = time.monotonic()
+        bus_off, last = self._last_bus_off, self._last_error_frame
+        if bus_off is not None and now - bus_off < HEALTH_WINDOW_S:
+            return 'error', (f'CAN bus-off within {HEALTH_WINDOW_S:g} s (the controller sends '
+                             'nothing until it recovers)')
+        if last is not None and now - last[0] < HEALTH_WINDOW_S:
+            return 'warn', f'CAN error frames within {HEALTH_WINDOW_S:g} s, last: {last[1]}'
+        return None
 
 
 def check_length(length: int, what: str) -> Callable[[bytes], str]:
