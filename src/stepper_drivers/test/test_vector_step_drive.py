@@ -460,6 +460,17 @@ def test_a_snapshot_waits_for_the_rest_of_a_statusword_burst(bench, monkeypatch)
     start = time.monotonic()
     assert snap(d).status_word == other
     assert time.monotonic() - start < 0.3
+    # the late TxPDO4 of the state before comes after the upload: older than it, it is dropped;
+    # the TxPDO4 of the newest state is stored
+    heartbeats = d.can.counters()['heartbeat_rx']
+    bench.monitor.send(0x481, struct.pack('<HHB', attained, vm.RSTSFLG_HOMED, 0))
+    bench.monitor.send(0x701, b'\x05')      # handled after the TxPDO4: the broker keeps order
+    wait(lambda: d.can.counters()['heartbeat_rx'] > heartbeats, what='the late TxPDO4')
+    s = snap(d)
+    assert s.status_word == other and not s.homed
+    burst(other, 500, 0, vm.RSTSFLG_HOMED, cobs=(0x481,))
+    wait(lambda: snap(d).homed, what="the newest state's TxPDO4 stored")
+    assert uploads == [(vm.RSTSFLG, vm.AEC_SUB), (vm.ERROR_REGISTER, 0)]
 
 
 def test_the_state_machine_reads_the_statusword_of_txpdo1_not_of_an_overtaken_txpdo(bench):

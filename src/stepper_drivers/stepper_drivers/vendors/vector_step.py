@@ -220,6 +220,8 @@ class VectorStepDrive(Drive):
         self._state_cob = vm.PDO_COB_BASES_TX[0] + self.node_id      # TxPDO1
         self._position_rx: tuple[float, int] | None = None   # (reception, position): last TxPDO2
         self._tpdo_entries: dict[int, tuple] = {}     # COB-ID: what that TxPDO maps
+        self._tpdo_layouts: dict[int, tuple] = {}     # COB-ID: (struct, indexes) to store it
+        self._sdo_read: set[int] = set()  # TxPDOs whose objects _wait_for_burst read by SDO
         self._burst_given_up: int | None = None
         self._ip_active = False            # start_interpolation done; no stop or error since
 
@@ -452,33 +454,54 @@ class VectorStepDrive(Drive):
             yield from self.link.configure_pdo(
                 'tx', number, entries, 0xFE, event_timer_ms=timer,
                 inhibit_time_100us=self.inhibit_100us if number in INHIBITED_TPDOS else 0)
-        self.link.node.setup_pdos(upload=False)
-        self._tpdo_entries = {}
+        node = self.link.node
+        node.setup_pdos(upload=False)
+        self._tpdo_entries, self._tpdo_layouts = {}, {}
         for number in range(1, len(vm.DRIVER_TPDOS) + 1):   # before the link's notifying one
-            pdo = self.link.node.tpdo[number]
-            self._tpdo_entries[pdo.cob_id] = vm.DRIVER_TPDOS[number - 1]
+            pdo = node.tpdo[number]
+            entries = vm.DRIVER_TPDOS[number - 1]
+            self._tpdo_entries[pdo.cob_id] = entries
+            self._tpdo_layouts[pdo.cob_id] = (self.link.pdo_struct(entries),
+                                              tuple(index for index, _, _ in entries))
+            # _on_tpdo stores what a TxPDO carries, canopen's own cache update would store
+            # every frame, also one older than what the cache holds
+            if node.on_TPDOs_update_callback in pdo.callbacks:
+                pdo.callbacks.remove(node.on_TPDOs_update_callback)
             if self._on_tpdo not in pdo.callbacks:
                 pdo.add_callback(self._on_tpdo)
         self.link.watch_tpdos()
 
     def _on_tpdo(self, pdo_map) -> None:
-        """(receive thread, after canopen's cache update) Every DRIVER_TPDOS mapping starts with
-        the statusword, and a change of it sends all four, TxPDO1 first: TxPDO1 has the node's
-        lowest COB-ID, so it also overtakes the TxPDO2..4 of the state before when they still
-        wait for the bus (a slow or busy bus; a drive with several transmit buffers). The
-        statusword of TxPDO1 is therefore the newest: the cache keeps it, whatever a later
-        TxPDO2..4 carried, and the others only tell whether their burst is complete."""
-        sw = int.from_bytes(bytes(pdo_map.data[:2]), 'little')
-        self._pdo_statusword[pdo_map.cob_id] = sw
-        if pdo_map.cob_id == self._position_cob:       # statusword, then the position (i32)
-            self._position_rx = (time.monotonic(),
-                                 int.from_bytes(bytes(pdo_map.data[2:6]), 'little', signed=True))
-        if pdo_map.cob_id != self._state_cob:
-            newest = self._pdo_statusword.get(self._state_cob)
-            if newest is not None:
-                self._values()[vm.STATUSWORD] = newest
-        elif sw != self._statusword_seen[0]:
-            self._statusword_seen = (sw, time.monotonic())
+        """(receive thread) Store what a TxPDO carries in the cache (tpdo_values).
+
+        Every DRIVER_TPDOS mapping starts with the statusword, and a change of it sends all
+        four, TxPDO1 first: TxPDO1 has the node's lowest COB-ID, so it also overtakes the
+        TxPDO2..4 of the state before when they still wait for the bus (a slow or busy bus; a
+        drive with several transmit buffers). So the statusword of TxPDO1 is the newest: the
+        cache keeps it, and the others' only tells whether their burst is complete. A TxPDO2..4
+        of an older state is still newer than the cache, except after _wait_for_burst read its
+        objects by SDO for the newest state: then it is dropped until its own TxPDO of that
+        state comes."""
+        cob = pdo_map.cob_id
+        layout, indexes = self._tpdo_layouts[cob]
+        fields = layout.unpack_from(pdo_map.data)     # (the bus checked the frame's length)
+        sw = fields[0]
+        self._pdo_statusword[cob] = sw
+        newest = self._pdo_statusword.get(self._state_cob, sw)
+        if cob == self._state_cob:
+            if sw != self._statusword_seen[0]:
+                self._statusword_seen = (sw, time.monotonic())
+                self._sdo_read.clear()
+        elif cob in self._sdo_read:
+            if sw != newest:
+                return
+            self._sdo_read.discard(cob)
+        values = self._values()
+        for index, value in zip(indexes, fields):
+            values[index] = value
+        values[vm.STATUSWORD] = newest
+        if cob == self._position_cob:              # statusword, then the position (i32)
+            self._position_rx = (time.monotonic(), fields[1])
 
     def _coherent(self) -> bool:
         return len(set(self._pdo_statusword.values())) <= 1
@@ -514,6 +537,8 @@ class VectorStepDrive(Drive):
                         # (an older upload written over them would stay until the next change)
                         if self._pdo_statusword.get(cob) != newest:
                             values[index] = value
+                if self._statusword_seen[0] == newest and self._pdo_statusword.get(cob) != newest:
+                    self._sdo_read.add(cob)   # its frames of older states are older than this
             self._position_rx = None          # the position is the SDO's: current
 
     def _seed(self) -> Steps[None]:
@@ -527,6 +552,7 @@ class VectorStepDrive(Drive):
                                 if pdo.enabled}
         self._statusword_seen = (sw, time.monotonic())
         self._burst_given_up = None
+        self._sdo_read.clear()
         self._position_rx = None
 
     def close(self) -> None:
