@@ -458,8 +458,8 @@ class BusSupervisor:
                     times.append(s.next_poll_t)
                 if s.velocity_deadline is not None:
                     times.append(max(s.velocity_deadline, s.watchdog_retry_t))
-            elif not s.not_driven or s.identity_recheck:
-                times.append(s.next_connect_t)
+            elif (not s.not_driven or s.identity_recheck) and s.active is None:
+                times.append(s.next_connect_t)      # (a connect under way wakes at wake_t)
             times += [t for t, _ in s.poll_waiters]
         return min(times + [t for t, _ in self._timers])
 

@@ -262,6 +262,39 @@ def test_a_busy_owner_is_not_waited_for(bus, monkeypatch):
 
 
 # ------------------------------------------------------------------------------ preemption
+class SlowConnectDrive(ScriptDrive):
+    WAIT_S = 1.0
+
+    def connect(self):
+        self._tx('connect')
+        yield self.WAIT_S           # a CANopen boot-up wait: one step that waits
+        return {'serial_number': '8'}
+
+
+def thread_cpu_s(tid: int) -> float:
+    with open(f'/proc/self/task/{tid}/stat') as f:
+        fields = f.read().rsplit(')', 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')   # utime + stime
+
+
+def test_the_owner_sleeps_while_a_connect_waits():
+    """A connect under way is not due again: its drive is not connected and its next
+    reconnect time has passed, but the owner sleeps until the connect's next step."""
+    line = Line()
+    sup = BusSupervisor(line, {'axis1': SlowConnectDrive(line, 'axis1')},
+                        {'publish_rate_hz': RATE_HZ, 'command_timeout_s': 0.3,
+                         'reconnect_period_s': 0.05})
+    sup.start()
+    try:
+        wait_for(lambda: line.calls('axis1', 'connect'), 2.0, 'the connect started')
+        cpu0 = thread_cpu_s(sup._thread.native_id)
+        wait_for(lambda: sup.slots['axis1'].connected, 3.0, 'connected')
+        used = thread_cpu_s(sup._thread.native_id) - cpu0
+        assert used < 0.1 * SlowConnectDrive.WAIT_S, f'the owner used {used:.2f} s of CPU'
+    finally:
+        sup.shutdown(0.5)
+
+
 def test_a_long_operation_gives_the_bus_to_the_other_drives(bus):
     sup, line, d = bus()
     fut = sup.submit('axis1', COMMAND, lambda: d['axis1'].start_homing(None), 'home')
