@@ -222,6 +222,9 @@ class Drive(abc.ABC):
     # The least speed the drive runs a move at (its velocity resolution or range); a slower
     # trajectory segment runs at this speed and arrives early. 0: any speed.
     min_velocity_steps_s: float = 0.0
+    # read_state() reads what the drive sent by itself (CANopen TxPDOs), no transaction: the bus
+    # owner then polls the other drives due in the same pass.
+    state_from_cache: bool = False
     # How long the last read_state() counts as fresh for a motion command: a driver may then
     # take "enabled, no alarm" from it instead of reading it on the wire first (the bus owner
     # sets its poll period here). 0: read it on the wire before every motion.

@@ -374,6 +374,7 @@ class BusSupervisor:
                 return 0.0
         self._expire_waiters(now)
         due = step = poll_step = reconnect = None
+        dues: list[Slot] = []
         queued = False
         for slot in self._slot_list:
             if slot.connected:
@@ -384,9 +385,10 @@ class BusSupervisor:
                         and now >= slot.watchdog_retry_t:        # the watchdog, on its own clock
                     self._watchdog_stop(slot)
                     return 0.0
-                if (slot.active is None or slot.active.polled) and now >= slot.next_poll_t \
-                        and (due is None or slot.next_poll_t < due.next_poll_t):
-                    due = slot
+                if (slot.active is None or slot.active.polled) and now >= slot.next_poll_t:
+                    dues.append(slot)
+                    if due is None or slot.next_poll_t < due.next_poll_t:
+                        due = slot
             elif reconnect is None and (not slot.not_driven or slot.identity_recheck) \
                     and slot.active is None and now >= slot.next_connect_t:
                 reconnect = slot
@@ -418,13 +420,30 @@ class BusSupervisor:
             self._connect(reconnect)
             return 0.0
         if due is not None:   # the longest due first: when polls overrun, every drive its turn
-            self._poll_step(due, now)
+            self._poll_due(dues, now)
             return 0.0
         if not any(s.connected for s in self._slot_list) \
                 and now >= self._last_cycle_t + self._period_s():
             self._cycle()     # the DISCONNECTED status goes on at the poll rate
             return 0.0
         return self._next_wake(now) - now
+
+    def _poll_due(self, dues: list[Slot], now: float) -> None:
+        """The longest-due drive's poll; then, while each poll read a cache (a drive with
+        `state_from_cache` whose read_state returned at once, no transaction) and no urgent job
+        or command came meanwhile, the other such drives due in the same pass: a cycle of
+        cached polls takes one pass of the owner, not one per drive. A poll on the wire ends
+        the pass, as every transaction does."""
+        dues.sort(key=lambda s: s.next_poll_t)
+        for k, slot in enumerate(dues):
+            if k and (not slot.drive.state_from_cache or self._urgent
+                      or self._new_command_ready()):
+                return
+            transactions = self.bus.transactions
+            self._poll_step(slot, now)
+            if not slot.drive.state_from_cache or slot.poll_steps is not None \
+                    or not slot.connected or self.bus.transactions != transactions:
+                return
 
     def _by_age(self) -> list[Slot]:
         if not any(s.queue for s in self.slots.values()):   # the usual case: no lock taken

@@ -295,6 +295,57 @@ def test_the_owner_sleeps_while_a_connect_waits():
         sup.shutdown(0.5)
 
 
+class CachedDrive(ScriptDrive):
+    """read_state() from what the drive sent by itself (a CANopen TxPDO cache): no transaction,
+    recorded on the line's record without taking its time."""
+
+    state_from_cache = True
+
+    def __init__(self, bus, name, params=None):
+        super().__init__(bus, name, params)
+        self.on_read = None          # called once, inside the next read_state()
+
+    def read_state(self):
+        with self.line.lock:
+            self.line.wire.append((time.monotonic(), self.name, 'cached read', ()))
+        if self.on_read is not None:
+            on_read, self.on_read = self.on_read, None
+            on_read()
+        return DriveState(state=State.OPERATION_ENABLED, enabled=True)
+
+
+def test_cached_polls_of_a_cycle_run_together_and_an_urgent_job_still_goes_between():
+    """Drives whose state is a cache are polled one after the other in one pass of the owner,
+    every one once per cycle; an urgent job that comes during that pass goes before the next
+    poll, and a poll on the wire ends the pass."""
+    line = Line()
+    drives = {f'axis{i}': CachedDrive(line, f'axis{i}') for i in range(1, 5)}
+    sup = BusSupervisor(line, drives, {'publish_rate_hz': RATE_HZ, 'command_timeout_s': 0.3,
+                                       'reconnect_period_s': 0.05})
+    sup.start()
+    try:
+        wait_for(lambda: all(s.polls > 2 for s in sup.slots.values()), 3.0, 'polled')
+        cycles0 = sup.cycles
+        start = time.monotonic()
+        wait_for(lambda: sup.cycles >= cycles0 + 4, 2.0, 'four cycles')
+        reads = [w for w in line.calls() if w[0] >= start and w[2] == 'cached read']
+        names = [w[1] for w in reads]
+        for k in range(0, len(names) - 3, 4):          # each cycle: every drive once, in order
+            assert names[k:k + 4] == ['axis1', 'axis2', 'axis3', 'axis4'], names
+        drives['axis1'].on_read = lambda: sup.submit('axis3', URGENT, drives['axis3'].stop,
+                                                     'stop', motion=False)
+        wait_for(lambda: line.calls('axis3', 'stop'), 2.0, 'the stop sent')
+        (stop,) = line.calls('axis3', 'stop')
+        after_stop = wait_for(lambda: (lambda names: names if len(names) >= 3 else None)(
+            [w[1] for w in line.calls() if w[0] > stop[0] and w[2] == 'cached read']), 2.0,
+            'polls after the stop')
+        before_stop = [w for w in line.calls() if w[0] < stop[0] and w[2] == 'cached read']
+        assert before_stop[-1][1] == 'axis1', 'the stop waited for polls after it came'
+        assert after_stop[:3] == ['axis2', 'axis3', 'axis4'], after_stop
+    finally:
+        sup.shutdown(0.5)
+
+
 def test_a_long_operation_gives_the_bus_to_the_other_drives(bus):
     sup, line, d = bus()
     fut = sup.submit('axis1', COMMAND, lambda: d['axis1'].start_homing(None), 'home')
