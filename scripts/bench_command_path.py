@@ -61,13 +61,13 @@ from typing import Any, Callable
 
 os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
 
-from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
-from std_msgs.msg import Float64  # noqa: E402
-from std_srvs.srv import SetBool  # noqa: E402
-from stepper_drivers.cli.ros_client import RosClient  # noqa: E402
-from stepper_sim.harness import CONFIG, Proc, executable, free_port, wait_for  # noqa: E402
-from stepper_drivers_msgs.msg import DriveStatus  # noqa: E402
-import yaml  # noqa: E402
+from diagnostic_msgs.msg import DiagnosticArray
+from std_msgs.msg import Float64
+from std_srvs.srv import SetBool
+from stepper_drivers.cli.ros_client import RosClient
+from stepper_sim.harness import CONFIG, Proc, executable, free_port, wait_for
+from stepper_drivers_msgs.msg import DriveStatus
+import yaml
 
 HELPER = str(pathlib.Path(__file__).resolve().parent / 'bench_cp_relays.py')
 CLK_TCK = os.sysconf('SC_CLK_TCK')
@@ -561,7 +561,7 @@ def report_latency(v: Vendor, r: dict) -> None:
     print(f'   {v.line}; node at its configured {r["rate_hz"]:g} Hz with {r["drives"]} drives, '
           f'axis1 enabled; {r["commands"]} position_command ({len(r["target"])} seen on the '
           f'wire) in {r["duration_s"]:.0f} s; bus owner '
-          + ('at the node\'s default (SCHED_FIFO 10 where granted)'
+          + ("at the node's default (SCHED_FIFO 10 where granted)"
              if r.get('owner_priority') is None else
              f'on SCHED_FIFO {r["owner_priority"]}' if r['owner_priority']
              else 'on the normal scheduler'))
@@ -591,11 +591,11 @@ def report_latency(v: Vendor, r: dict) -> None:
         print(f'   -> {v.target_text}: p50 {ms(t50)} ms, p99 {ms(t99)} ms')
     l50, l99 = stats(r.get('link_first', []))
     if l99 is not None and 'goal_first' in r:
-        print(f'   -> the same first frame on the node\'s own link (a relay between the node and '
+        print(f"   -> the same first frame on the node's own link (a relay between the node and "
               f'the broker, as the X-PLUS MT\'s; n={len(r["link_first"])}): p50 {ms(l50)} ms, '
               f'p99 {ms(l99)} ms; goal p99 <= {ms(r["goal_first"])} ms: '
               f'{"met" if l99 <= r["goal_first"] else "NOT met"}. The broker\'s figures above '
-              'come after this relay\'s hop and its own fan-out')
+              "come after this relay's hop and its own fan-out")
     print(f'   before the bus owner (issue 9): {BEFORE["latency"][v.key]}; floor '
           f'{BEFORE["floor"]}')
 
@@ -873,12 +873,12 @@ def cpu_case(case: str, ros: RosClient, log_dir: pathlib.Path, window_s: float) 
              'xplus_units': 'X-PLUS MT, 8 unit ids on one port',
              'vector_step': 'Vector Step, 8 drives on one CAN bus (TxPDO2 every 100 ms)'}[case]
     lib = 'pymodbus FC03 1001 x21' if case != 'vector_step' else \
-        'canopen: the node\'s TxPDO set, SYNC and heartbeat; cached values'
+        "canopen: the node's TxPDO set, SYNC and heartbeat; cached values"
     what = {'bare': f'bare loop ({lib} per drive per period)',
             'bare+ROS': 'the same + rclpy publishing what the node does when nothing '
                         'changes, the cheapest way (JointState per period, DriveStatus 1 Hz, '
                         '/diagnostics 2 Hz): the floor of an rclpy node',
-            'driver': 'the project\'s XplusMtDrive.read_state() loop, no ROS',
+            'driver': "the project's XplusMtDrive.read_state() loop, no ROS",
             'bare/link': 'the bare loop with a thread per link, as the node has'}
     print(f'\n== CPU at {POLL_RATE_CPU_HZ:g} Hz, {title} [{res["cores"]} cores, load '
           f'{load:.2f}; {window_s:g} s windows; % of one core]')
@@ -929,10 +929,10 @@ def main() -> int:
     ap.add_argument('--window', type=float, default=5.0, help='CPU window [s]')
     ap.add_argument('--owner-priority', type=int, default=None,
                     help='latency: the node with -p owner_thread_priority:=N (SCHED_FIFO; 0: '
-                         'the normal scheduler; default: the node\'s own, 10)')
+                         "the normal scheduler; default: the node's own, 10)")
     ap.add_argument('--can-link', action='store_true',
-                    help='Vector Step latency: a relay on the node\'s own link to the broker as '
-                         'well (the X-PLUS MT\'s way of timing the frame); the broker\'s figures '
+                    help="Vector Step latency: a relay on the node's own link to the broker as "
+                         "well (the X-PLUS MT's way of timing the frame); the broker's figures "
                          'then include its hop')
     ap.add_argument('--json', type=pathlib.Path, help='write every figure to this file')
     args = ap.parse_args()

@@ -94,22 +94,22 @@ from typing import Any
 
 os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
 
-from bench_command_path import (bare_rate, load_params, machine, reserve_domain,  # noqa: E402
+from bench_command_path import (bare_rate, load_params, machine, reserve_domain,
                                 running)
-from builtin_interfaces.msg import Duration, Time  # noqa: E402
-from control_msgs.action import FollowJointTrajectory  # noqa: E402
-from std_msgs.msg import Float64  # noqa: E402
-from std_srvs.srv import SetBool  # noqa: E402
-from stepper_drivers.cli.ros_client import RosClient  # noqa: E402
+from builtin_interfaces.msg import Duration, Time
+from control_msgs.action import FollowJointTrajectory
+from std_msgs.msg import Float64
+from std_srvs.srv import SetBool
+from stepper_drivers.cli.ros_client import RosClient
 # the one trapezoid formula of the node (follow.Run.desired_steps uses it); Run itself needs
 # the node's live axes
-from stepper_drivers.trajectory import along as _along  # noqa: E402
-from stepper_drivers.trajectory import JointLimits, TrajectoryError, build, plan  # noqa: E402
-from stepper_drivers.units import UnitConversion  # noqa: E402
-from stepper_drivers.vendors.xplus_mt import XplusMtDrive  # noqa: E402
-from stepper_drivers_msgs.msg import DriveStatus  # noqa: E402
-from stepper_sim.harness import CONFIG, Proc, executable, free_port, wait_for  # noqa: E402
-from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint  # noqa: E402
+from stepper_drivers.trajectory import along as _along
+from stepper_drivers.trajectory import JointLimits, TrajectoryError, build, plan
+from stepper_drivers.units import UnitConversion
+from stepper_drivers.vendors.xplus_mt import XplusMtDrive
+from stepper_drivers_msgs.msg import DriveStatus
+from stepper_sim.harness import CONFIG, Proc, executable, free_port, wait_for
+from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 DRIVES = ('axis1', 'axis2')
 LEAD_S = 0.5                   # header.stamp this far ahead: the start time is known here
@@ -662,7 +662,7 @@ def run_vendor(spec: Spec, ros: RosClient, log_dir: pathlib.Path, n: int, sample
                     Duration(sec=int(t), nanosec=int(round((t - int(t)) * 1e9))))))
             feedback: list = []
             result = send_goal(ros, b.node_name, FollowJointTrajectory.Goal(trajectory=msg),
-                               lambda f: feedback.append((time.monotonic(), f)),
+                               lambda f, feedback=feedback: feedback.append((time.monotonic(), f)),
                                points[-1][0] + LEAD_S + 20.0)
             end_t = time.monotonic()
             time.sleep(0.2)
@@ -917,7 +917,7 @@ def dense_row(title: str, t: dict) -> str:
 
 
 DENSE_HEADER = ('| bus | trajectory | result | finish (MoveIt limit) | path error max / RMS '
-                '(% of length) | timing error max joint1 / joint2 (mrad) | node\'s segments |\n'
+                "(% of length) | timing error max joint1 / joint2 (mrad) | node's segments |\n"
                 '|---|---|---|---|---|---|---|')
 
 
@@ -981,7 +981,7 @@ def run_two_node(ros: RosClient, log_dir: pathlib.Path, sample_hz: float,
             results['trajectories'].append(res)
             try:
                 res.update(_two_node_one(buses, ros, dt, sample_hz, bound))
-            except Exception as exc:  # noqa: BLE001
+            except Exception as exc:  # noqa: BLE001 - reported in the results, run goes on
                 res['error'] = f'{type(exc).__name__}: {exc}'
                 results['error'] = f'{dt:g} s: {res["error"]}'
                 break
@@ -1105,7 +1105,7 @@ def _two_node_one(buses: dict[str, Bus], ros: RosClient, dt: float, sample_hz: f
 TWO_NODE_HEADER = ('| points every | result X-PLUS MT; RD4 | finish from the stamp (MoveIt '
                    'limit) | path error max / RMS, X-PLUS MT; RD4 | timing error max, 4 joints '
                    '(mrad) | arrival spread max / median (points) | bound | over the bound | '
-                   'arrival vs the point\'s time |\n|---|---|---|---|---|---|---|---|---|')
+                   "arrival vs the point's time |\n|---|---|---|---|---|---|---|---|---|")
 
 
 def two_node_row(t: dict) -> str:
@@ -1205,7 +1205,7 @@ def main() -> int:
     ap.add_argument('--sample-rate', type=float, default=200.0,
                     help="the simulators' true-position rate [Hz] (default 200)")
     ap.add_argument('--band', type=float, default=0.005,
-                    help='arrival band, fraction of the axis\'s segment distance (default 0.005)')
+                    help="arrival band, fraction of the axis's segment distance (default 0.005)")
     ap.add_argument('--vector-sync-period', type=float, nargs='*', default=None,
                     help='Vector Step also with can.sync_period_s = each of these [s] '
                          '(interpolated position; default 0.01, with --dense none; none: only '

@@ -24,14 +24,14 @@ import time
 
 os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
 
-from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
-from sensor_msgs.msg import JointState  # noqa: E402
-from std_msgs.msg import Float64  # noqa: E402
-from std_srvs.srv import SetBool  # noqa: E402
-from stepper_drivers.cli.ros_client import RosClient  # noqa: E402
-from stepper_sim.harness import Proc, executable, free_port  # noqa: E402
-from stepper_drivers_msgs.msg import DriveStatus  # noqa: E402
-import yaml  # noqa: E402
+from diagnostic_msgs.msg import DiagnosticArray
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64
+from std_srvs.srv import SetBool
+from stepper_drivers.cli.ros_client import RosClient
+from stepper_sim.harness import Proc, executable, free_port
+from stepper_drivers_msgs.msg import DriveStatus
+import yaml
 
 NODE = '/vector_step_node'
 CLK_TCK = os.sysconf('SC_CLK_TCK')

@@ -23,7 +23,7 @@ from pymodbus.client import ModbusTcpClient
 
 from stepper_drivers.vendors.xplus_mt import SPLIT_READS, STATE_BLOCK, VENDOR
 
-SIM_CODE = r'''
+SIM_CODE = r"""
 import sys
 from stepper_sim.xplus_mt_sim import XplusMtSim
 sim = XplusMtSim(port=0, strict={strict})
@@ -31,7 +31,7 @@ sim.start()
 print(sim.port, flush=True)
 sys.stdin.read()          # runs until the parent closes our stdin
 sim.stop()
-'''
+"""
 
 
 def start_sim(strict: bool) -> tuple[subprocess.Popen, int]:

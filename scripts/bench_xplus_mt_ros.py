@@ -26,11 +26,11 @@ import pathlib
 
 os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
 
-from std_msgs.msg import Float64  # noqa: E402
-from std_srvs.srv import SetBool  # noqa: E402
-from stepper_drivers.cli.ros_client import RosClient  # noqa: E402
-from stepper_sim.harness import CONFIG, Proc, executable, free_port  # noqa: E402
-from stepper_drivers_msgs.msg import DriveStatus  # noqa: E402
+from std_msgs.msg import Float64
+from std_srvs.srv import SetBool
+from stepper_drivers.cli.ros_client import RosClient
+from stepper_sim.harness import CONFIG, Proc, executable, free_port
+from stepper_drivers_msgs.msg import DriveStatus
 
 STATE_BLOCK = (1001, 21)      # the block the node reads per drive per cycle (1001..1021)
 TARGET_POSITION = 1042

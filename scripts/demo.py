@@ -26,12 +26,12 @@ import time
 
 os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
 
-from std_msgs.msg import Float64  # noqa: E402
-from std_srvs.srv import SetBool, Trigger  # noqa: E402
-from stepper_drivers.cli import view  # noqa: E402
-from stepper_drivers.cli.ros_client import RosClient  # noqa: E402
-from stepper_sim.harness import CONFIG, ROOT, Proc, executable, free_port  # noqa: E402
-from stepper_drivers_msgs.msg import DriveStatus  # noqa: E402
+from std_msgs.msg import Float64
+from std_srvs.srv import SetBool, Trigger
+from stepper_drivers.cli import view
+from stepper_drivers.cli.ros_client import RosClient
+from stepper_sim.harness import CONFIG, ROOT, Proc, executable, free_port
+from stepper_drivers_msgs.msg import DriveStatus
 
 # vendor: simulator, node, params files, the parameter that carries the link address, and the moves
 DEMOS = {

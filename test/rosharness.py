@@ -9,6 +9,7 @@ import signal
 import threading
 import time
 
+# re-exported (hence F401): the test modules import the harness' pieces from here
 from stepper_drivers.cli.ros_client import RosClient  # noqa: F401
 from stepper_sim.harness import (CONFIG, INSTALL, ROOT, Proc, executable,  # noqa: F401
                                  free_port, wait_for)

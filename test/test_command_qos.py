@@ -15,7 +15,7 @@ from test_param_rules import make_node, ros  # noqa: F401 - ros is the fixture m
 
 
 @pytest.mark.parametrize('key', KEYS)
-def test_every_command_subscription_is_reliable_and_keeps_all(ros, key):  # noqa: F811
+def test_every_command_subscription_is_reliable_and_keeps_all(ros, key):
     from rclpy.qos import HistoryPolicy, ReliabilityPolicy
     node = make_node(key)
     try:
@@ -33,7 +33,7 @@ def test_every_command_subscription_is_reliable_and_keeps_all(ros, key):  # noqa
         node.destroy_node()
 
 
-def test_command_topics_are_served_by_the_hidden_companion_node(ros):  # noqa: F811
+def test_command_topics_are_served_by_the_hidden_companion_node(ros):
     node = make_node('xplus_mt')
     try:
         assert node.cmd_node.get_name() == '_xplus_mt_node_commands'    # hidden: leading _
@@ -47,7 +47,7 @@ def test_command_topics_are_served_by_the_hidden_companion_node(ros):  # noqa: F
         node.destroy_node()
 
 
-def test_command_topics_follow_the_nodes_remapping_and_name(ros):  # noqa: F811
+def test_command_topics_follow_the_nodes_remapping_and_name(ros):
     # A launch file's name= is `-r __node:=...`: a global argument that would rename every
     # node of the process; the companion takes none and resolves through the node's rules.
     node = make_node('xplus_mt', '-r', '__node:=arm_drives', '-p', 'drives:=[axis1]', '-r',

@@ -90,12 +90,11 @@ def problems(module: str, imported: set[str]) -> list[str]:
         bad('the product does not import the simulators', sim)
     elif within(module, 'stepper_drivers.vendors'):
         if module.endswith('_map'):
-            allowed = lambda m: m.startswith('protocol')      # noqa: E731
-            why = 'a map uses only protocol/ (codecs, CiA numbers)'
+            bad('a map uses only protocol/ (codecs, CiA numbers)',
+                {m for m in ours if not m.startswith('protocol')})
         else:
-            allowed = lambda m: m in CORE or m.startswith(('protocol', 'vendors'))  # noqa: E731
-            why = 'a vendor uses protocol/, vendors/ and the ROS-free core only'
-        bad(why, {m for m in ours if not allowed(m)})
+            bad('a vendor uses protocol/, vendors/ and the ROS-free core only',
+                {m for m in ours if not (m in CORE or m.startswith(('protocol', 'vendors')))})
         bad('vendors/ import no ROS (the node layer resolves what needs ROS)', ros)
         bad('the product does not import the simulators', sim)
     elif module.split('.')[-1] in CORE and module.count('.') == 1:

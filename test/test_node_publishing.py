@@ -17,7 +17,7 @@ from test_param_rules import make_node, ros  # noqa: F401 - ros is the fixture m
 
 
 @pytest.mark.parametrize('key', KEYS)
-def test_the_executor_has_no_periodic_work(ros, key):  # noqa: F811
+def test_the_executor_has_no_periodic_work(ros, key):
     node = make_node(key)
     try:
         assert [t.timer_period_ns for t in node.timers] == []
@@ -25,7 +25,7 @@ def test_the_executor_has_no_periodic_work(ros, key):  # noqa: F811
         node.destroy_node()
 
 
-def test_stamps_are_the_system_time_or_the_simulated_time(ros):  # noqa: F811
+def test_stamps_are_the_system_time_or_the_simulated_time(ros):
     node = make_node('xplus_mt')
     try:
         before = time.time_ns()
@@ -42,7 +42,7 @@ def test_stamps_are_the_system_time_or_the_simulated_time(ros):  # noqa: F811
         node.destroy_node()
 
 
-def test_diagnostics_values_are_reused_only_while_unchanged(ros):  # noqa: F811
+def test_diagnostics_values_are_reused_only_while_unchanged(ros):
     node = make_node('xplus_mt')
     try:
         first = node._key_values('n: axis1', [('state', 'READY'), ('position', 0.5)])

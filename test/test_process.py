@@ -17,7 +17,7 @@ import textwrap
 import pytest
 from stepper_sim.harness import wait_for
 
-CHILD = textwrap.dedent('''
+CHILD = textwrap.dedent("""
     import sys, threading
     from stepper_drivers.process import block_shutdown_signals, spin_node
     block_shutdown_signals()
@@ -40,7 +40,7 @@ CHILD = textwrap.dedent('''
             raise RuntimeError('a bug in a callback')
         node.create_subscription(Float64, 'process_test_boom', boom, 10)
     sys.exit(spin_node(node))
-''')
+""")
 
 
 def start(how: str) -> subprocess.Popen:

@@ -214,7 +214,7 @@ def test_crc_corrupt_replies_are_counted_and_survived(bench):
     before = int(bench.link_values()['crc_errors'])
     for i in range(3):
         bench.inject('axis1', 'corrupt_reply', code=1)   # the next reply only: the retry is good
-        wait_for(lambda: int(bench.link_values()['crc_errors']) >= before + i + 1, 10.0,
+        wait_for(lambda i=i: int(bench.link_values()['crc_errors']) >= before + i + 1, 10.0,
                  f'CRC error {i + 1} counted')
     values = bench.link_values()
     assert int(values['retries']) >= 3 and values['reconnects'] == '0'

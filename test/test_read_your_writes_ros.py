@@ -68,7 +68,7 @@ def test_xmind_k_status_after_an_enable_and_a_disable_shows_them(procs, ros, tmp
     b = XmindShipped(procs, ros, tmp_path)
     status = f'{b.node_ns}/axis1/status'      # (the bench keeps every status)
     for on in (True, False, True, False):
-        r, msg = latest_at_answer(ros, status, lambda: b.call(
+        r, msg = latest_at_answer(ros, status, lambda on=on: b.call(
             'axis1', 'enable', SetBool.Request(data=on), SetBool))
         assert r.success, r.message
         assert msg.enabled == on and (msg.state == 'OPERATION ENABLED') == on, (on, msg.state)

@@ -104,7 +104,7 @@ def test_a_second_bootstrap_has_nothing_to_do():
 
 # What /opt/ros/jazzy/setup.bash does, pointed at this workspace's pip ROS (.venv): so the
 # bootstrap's system-ROS branch runs here although this machine has no apt ROS.
-FAKE_SYSTEM_ROS_SETUP = '''\
+FAKE_SYSTEM_ROS_SETUP = """\
 _v={venv}
 export ROS_DISTRO=jazzy ROS_VERSION=2 ROS_PYTHON_VERSION=3
 export AMENT_PREFIX_PATH=$_v${{AMENT_PREFIX_PATH:+:$AMENT_PREFIX_PATH}}
@@ -115,7 +115,7 @@ for _d in {site}/ros_*.libs; do _ld=$_ld:$_d; done
 export LD_LIBRARY_PATH=$_ld${{LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}}
 export PATH={bin}:$PATH
 unset _v _ld _d
-'''
+"""
 
 
 def test_bootstrap_takes_the_system_ros_when_there_is_one(tmp_path):

@@ -307,4 +307,4 @@ def test_line_noise_during_reconnects_is_a_link_error_not_another_device(bench):
         noisy = histories[d][start[d]:]
         assert noisy and all(m.not_driven == '' for m in noisy), [m.not_driven for m in noisy]
     log = bench.node.output()
-    assert "02?S,RS,D2" in log and 'not driven' not in log, log[-3000:]
+    assert '02?S,RS,D2' in log and 'not driven' not in log, log[-3000:]

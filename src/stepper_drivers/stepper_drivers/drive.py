@@ -302,7 +302,7 @@ class Drive(abc.ABC):
     @abc.abstractmethod
     def write_register(self, address: str, data_type: str, value: int) -> None: ...
 
-    def close(self) -> None:
+    def close(self) -> None:  # noqa: B027 - an optional hook: most drives hold nothing
         """Release per-drive resources (the bus is closed by the node)."""
 
 

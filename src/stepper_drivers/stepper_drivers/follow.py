@@ -201,7 +201,7 @@ class Run:
                         f'{self.follower.axes[j].limits.unit}' for j, d in worst.items())
         return (f'{len(self.segments) + merged} points followed as {len(self.segments)} '
                 f'segments of at least {self.min_segment_s:.3g} s (what the bus needs to send '
-                f'the moves of its axes) or as long as the joints\' accelerations need; the '
+                f"the moves of its axes) or as long as the joints' accelerations need; the "
                 f'plan passes the merged points within {far}')
 
     def cancel(self, why: str) -> None:
@@ -393,7 +393,7 @@ class Run:
                 if abs(err) > tol:
                     self._stop_axes()
                     return _aborted(PATH_TOLERANCE_VIOLATED,
-                                    f'{joint}: velocity {err:+.0f} steps/s from the path\'s '
+                                    f"{joint}: velocity {err:+.0f} steps/s from the path's "
                                     f'(path velocity tolerance {tol:g} steps/s) at '
                                     f'{now - self.start_t:.3f} s')
         return None

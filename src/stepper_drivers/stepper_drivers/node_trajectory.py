@@ -120,7 +120,8 @@ class TrajectoryInterface:
             if why:
                 raise TrajectoryError(f'{joint}: {why}')
 
-    def _start(self, msg: JointTrajectory, tol: Tolerances = Tolerances()) -> Run:
+    def _start(self, msg: JointTrajectory, tol: Tolerances | None = None) -> Run:
+        tol = Tolerances() if tol is None else tol
         if not self.node.accepting:
             raise TrajectoryError(f'the node is not active (lifecycle state '
                                   f'{self.node.lifecycle_state_label()}); activate it first')

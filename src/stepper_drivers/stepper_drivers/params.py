@@ -199,7 +199,7 @@ BUS_PARAMS = (
       'often otherwise [Hz]', 0.1, 1000.0, read_only=False),
     P('owner_thread_priority', 10, 'real-time priority (SCHED_FIFO, 1..99) of the bus owner '
       'threads, so that a command reaches the wire without waiting for the scheduler on a '
-      'loaded machine (as ros2_control\'s controller_manager asks for); 0 = the normal '
+      "loaded machine (as ros2_control's controller_manager asks for); 0 = the normal "
       'scheduler. Needs CAP_SYS_NICE or an rtprio limit (/etc/security/limits.conf); refused: '
       'one warning, and the normal scheduler', 0, 99),
 )

@@ -56,7 +56,7 @@ def test_axes_of_one_segment_arrive_together_on_a_straight_path():
 
 def test_an_impossible_segment_is_refused_before_anything_naming_joint_point_and_limit():
     traj = build(['a', 'b'], [1.0, 1.1], [[100, 0], [100, 5000]], known=['a', 'b'])
-    with pytest.raises(TrajectoryError, match=r"b: segment to point 1 \(1 s to 1.1 s\) needs an "
+    with pytest.raises(TrajectoryError, match=r'b: segment to point 1 \(1 s to 1.1 s\) needs an '
                                               r'acceleration .*max_acceleration'):
         plan(traj, {'a': 0.0, 'b': 0.0}, {'a': LIM, 'b': LIM})
 

@@ -591,7 +591,7 @@ def test_drives_on_two_hosts_each_get_their_own_bus(tmp_path):
         complete(drives['right'].move_to(-7_000, FAST))
         for d, s, target in ((drives['left'], sims[0], 3_000),
                              (drives['right'], sims[1], -7_000)):
-            wait_for(lambda: (lambda st: st.target_reached and not st.moving)(d.read_state()),
+            wait_for(lambda d=d: (lambda st: st.target_reached and not st.moving)(d.read_state()),
                      3.0, 'target reached')
             assert s.drives['axis1'].true_position_steps == pytest.approx(target, abs=0.5)
         for b in buses.values():

@@ -427,7 +427,7 @@ def _index_procedure(direction: int) -> Procedure:
 
 def _current_position(run: 'HomingRun') -> Generator[None, AxisEvent, float]:
     return run.axis.raw_position_steps
-    yield   # noqa: unreachable; makes this a generator
+    yield   # unreachable: makes this a generator
 
 
 def _cia402_methods() -> dict[int, Procedure]:

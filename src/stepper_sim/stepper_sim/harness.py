@@ -111,7 +111,7 @@ class Proc:
                     pass
                 self.proc.wait(timeout=5)
                 raise AssertionError(f'{self.name} did not end within {timeout_s} s of '
-                                     f'signal {sig}:\n{self.output()[-12000:]}')
+                                     f'signal {sig}:\n{self.output()[-12000:]}') from None
         self.log_file.close()
         return self.proc.returncode
 

@@ -561,7 +561,7 @@ class RtuLine(PtyLine):
             unit.baud_switch = baud_switch     # every unit on a line has the line's setting
             if unit.node_id in by_id:
                 raise ValueError(f'drives.{unit.name}.node_id: {unit.node_id} is also '
-                                 f'{by_id[unit.node_id].name}\'s (node ids are unique on '
+                                 f"{by_id[unit.node_id].name}'s (node ids are unique on "
                                  'a line, §7.1)')
             by_id[unit.node_id] = unit
         baud, parity = rm.BAUD_SWITCH[baud_switch]

@@ -273,7 +273,7 @@ def main(argv: list[str] | None = None) -> int:
         except OSError as exc:
             print(f'socketcand_broker: cannot listen on {args.host}:{args.port}: {exc}',
                   file=sys.stderr, flush=True)
-            raise SystemExit(1)
+            raise SystemExit(1) from None
         print(f'socketcand_broker: listening on {broker.address}', flush=True)
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGINT, signal.SIGTERM):

@@ -79,7 +79,7 @@ def _top_only(direction: int):
 
 def _on_the_spot(run: HomingRun) -> Generator[None, AxisEvent, float]:
     return run.axis.raw_position_steps
-    yield   # noqa: unreachable - makes this a generator
+    yield   # unreachable: makes this a generator
 
 
 # "direction" read as the direction in which the home edge is crossed (see docs/vector_step.md).

@@ -8,7 +8,7 @@ import textwrap
 
 from stepper_sim.harness import wait_for
 
-STARTER = textwrap.dedent('''
+STARTER = textwrap.dedent("""
     import os, pathlib, sys, tempfile, threading
     from stepper_sim.harness import Proc
     log = pathlib.Path(tempfile.mkdtemp())
@@ -22,7 +22,7 @@ STARTER = textwrap.dedent('''
     print(p.pid, flush=True)
     sys.stdin.readline()                 # the test says when
     os.abort() if sys.argv[1] == 'main' else os._exit(0)
-''')
+""")
 
 
 def _alive(pid):

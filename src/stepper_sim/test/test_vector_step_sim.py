@@ -310,7 +310,7 @@ def test_g4_state_machine_transitions(bench):
              ('02', 0x4F, 0x40)]                    # 11 then 12 (0x605A = 2, at rest)
     for cw, mask, value in steps:
         wire.send(0x201, h(cw + ' 00 01'))
-        wire.wait_sw(lambda sw: sw & mask == value)
+        wire.wait_sw(lambda sw, mask=mask, value=value: sw & mask == value)
     wire.write(0x605A, 0, 6, 2)
     enable(wire)
     wire.send(0x201, h('02 00 01'))

@@ -110,7 +110,7 @@ def test_library_traps_the_driver_avoids(master):
     assert node.sdo[0x6061].raw == -1
     # 0x6060 is write-only: reading it aborts 0x06010001
     with pytest.raises(canopen.SdoAbortedError) as err:
-        node.sdo[0x6060].raw                                   # noqa: B018
+        node.sdo[0x6060].raw       # noqa: B018 - the read is the test: it must abort
     assert err.value.code == 0x06010001
     # AEC homing methods are raw numbers: -1 is "BLS, negative direction", not the library's
     node.sdo[0x6098].raw = -1

@@ -73,7 +73,7 @@ class Client:
             self.write(MODE, mode, unit)
         for cw, expected_state in ((0x0006, 0x0021), (0x0007, 0x0023), (0x000F, 0x0027)):
             self.cw(cw, unit)
-            wait_for(lambda: self.sw(unit) & 0x006F == expected_state, 1.0)
+            wait_for(lambda want=expected_state: self.sw(unit) & 0x006F == want, 1.0)
 
     def close(self):
         self.mb.close()

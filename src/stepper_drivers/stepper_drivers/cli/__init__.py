@@ -7,5 +7,6 @@ Two halves that share nothing but the exit codes:
   and can write a params file for them.
 """
 
+# the exit codes, re-exported (hence F401): the commands' callers import them from the package
 from .errors import (EXIT_FAILED, EXIT_FAULT, EXIT_NOT_FOUND, EXIT_OK, EXIT_TIMEOUT,  # noqa: F401
                      EXIT_USAGE, CliError)

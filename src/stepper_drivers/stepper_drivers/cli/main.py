@@ -12,11 +12,11 @@ from .errors import EXIT_INTERRUPTED, EXIT_NAMES, EXIT_USAGE, CliError
 logger = logging.getLogger(__name__)
 
 PROG = 'stepperctl'
-EPILOG = '''exit codes: 0 ok, 1 the drive refused or failed, 2 usage, 3 drive not found / nothing
+EPILOG = """exit codes: 0 ok, 1 the drive refused or failed, 2 usage, 3 drive not found / nothing
 answered, 4 timeout, 5 drive in fault, 130 interrupted (the drive was told to stop).
 Drives are named node/drive (xplus_mt_node/axis1), by drive name alone (axis1) or by joint name
 when that names one drive. The ROS commands see the nodes of ROS_DOMAIN_ID within
-ROS_AUTOMATIC_DISCOVERY_RANGE, as any ROS tool.'''
+ROS_AUTOMATIC_DISCOVERY_RANGE, as any ROS tool."""
 
 
 class Parser(argparse.ArgumentParser):
@@ -131,7 +131,7 @@ def _xmind_k_scan_options(p) -> tuple[float, float]:
 
 def _vector_step_scan_options(p) -> tuple[float, float]:
     p.add_argument('--interface', default='socketcand',
-                   help="python-can interface: socketcan (Linux CAN card) or socketcand "
+                   help='python-can interface: socketcan (Linux CAN card) or socketcand '
                    '(default, the loopback broker)')
     p.add_argument('--channel', default='can0', help='CAN channel (default can0)')
     p.add_argument('--bitrate', type=int, default=125000, help='bit rate (default 125000)')

@@ -818,7 +818,7 @@ class VectorStepDrive(Drive):
         """A speed in the drive's unit (0.01 rev/s, always positive), checked for the object."""
         value = vm.rps100_from_hz(abs(velocity_steps_s), self.steps_per_rev)
         if velocity_steps_s and value == 0:
-            raise DriveError(f'{what} {velocity_steps_s:.4g} steps/s is below the drive\'s '
+            raise DriveError(f"{what} {velocity_steps_s:.4g} steps/s is below the drive's "
                              f'resolution of 0.01 rev/s ({self.steps_per_rev / 100.0:g} steps/s)')
         return self._checked(index, sub, value, f'{what} {velocity_steps_s:.6g} steps/s')
 
@@ -827,7 +827,7 @@ class VectorStepDrive(Drive):
         value = vm.rps2x10_from_hz_s(acceleration_steps_s2, self.steps_per_rev)
         if acceleration_steps_s2 > 0 and value == 0:
             raise DriveError(f'{what} {acceleration_steps_s2:.4g} steps/s^2 is below the '
-                             f'drive\'s resolution of 0.1 rev/s^2 '
+                             f"drive's resolution of 0.1 rev/s^2 "
                              f'({self.steps_per_rev / 10.0:g} steps/s^2)')
         return self._checked(index, 0, value, f'{what} {acceleration_steps_s2:.6g} steps/s^2')
 

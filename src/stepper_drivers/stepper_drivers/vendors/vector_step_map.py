@@ -19,7 +19,8 @@ import os
 import pathlib
 from typing import Mapping
 
-# CiA 301 numbers, re-exported: the driver's PDO set below and the simulator use them as vm.*
+# CiA 301 numbers, re-exported (hence F401): the driver's PDO set below and the simulator use
+# them as vm.*
 from ..protocol.cia301 import (EMCY_NO_ERROR, PDO_COB_BASES_RX, PDO_COB_BASES_TX,  # noqa: F401
                                PDO_INVALID, PDO_RTR_NOT_ALLOWED, RPDO_COMMUNICATION, RPDO_MAPPING,
                                TPDO_COMMUNICATION, TPDO_MAPPING, abort_text, mapping_entry,
@@ -460,7 +461,7 @@ def emcy_text(code: int, vendor_data: bytes = b'') -> str:
     if entry is None and code & 0xFF00 == 0xFF00:
         text = f'manufacturer-specific error 0x{code:04X}'
     elif entry is None:
-        text = f'error 0x{code:04X} (not in the manual\'s EMCY table)'
+        text = f"error 0x{code:04X} (not in the manual's EMCY table)"
     else:
         text = entry.text
     if code in HOME_ERROR_CODES and vendor_data:
