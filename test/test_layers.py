@@ -24,7 +24,8 @@ SIM = ROOT / 'src' / 'stepper_sim' / 'stepper_sim'
 ROS = ('rclpy', 'ament_index_python', 'rcl_interfaces', 'launch', 'launch_ros',
        'rosidl_runtime_py')
 # ROS-free modules under the vendors: the contract, CiA 402, units, rules, planning, supervisor
-CORE = ('drive', 'cia402', 'units', 'param_rules', 'trajectory', 'supervisor', 'follow')
+CORE = ('drive', 'cia402', 'cia402_drive', 'units', 'param_rules', 'trajectory', 'commands',
+        'supervisor', 'follow')
 # protocol modules that are transports (a bus, a line): the simulators do not use them
 TRANSPORTS = ('canopen_link', 'xmind_k_bus', 'ascii_line', 'modbus_tcp')
 

@@ -29,7 +29,8 @@ import time
 from typing import Callable
 
 from .drive import Drive, Motion, is_steps
-from .supervisor import COMMAND, URGENT, BusSupervisor
+from .commands import Command
+from .supervisor import BusSupervisor
 from .trajectory import (JointLimits, Segment, Trajectory, TrajectoryError, along, along_velocity,
                          plan, retimed)
 
@@ -254,10 +255,9 @@ class Run:
                     if clock() < end_t and self._still_on_the_way(
                             axis, seg_t, previous[move.joint], before.get(move.joint)):
                         continue
-                    self._jobs.append(axis.sup.submit(
-                        axis.drive_name, COMMAND,
+                    self._jobs.append(axis.sup.submit(axis.drive_name, Command.move(
                         self._move_job(axis, move, previous[move.joint], seg_t, end_t),
-                        f'trajectory segment to {move.target_steps:g} steps', disarms=True))
+                        f'trajectory segment to {move.target_steps:g} steps')))
                     before[move.joint] = previous[move.joint]
                     previous[move.joint] = move.target_steps
                     waiting.remove(move)
@@ -536,15 +536,14 @@ class Follower:
                         not {a.joint for a in axes} <= set(job.axes):
                     job = Stream(self, axes)
                     self._streams[key] = job
-                    job.future = axes[0].sup.submit(
-                        axes[0].drive_name, COMMAND, job.run,
-                        f'interpolated trajectory of {[a.joint for a in axes]}', disarms=True,
-                        polled=True)
+                    job.future = axes[0].sup.submit(axes[0].drive_name, Command.move(
+                        job.run, f'interpolated trajectory of {[a.joint for a in axes]}',
+                        polled=True))
                 futs.append(job.future)
         return futs
 
     def stop_axis(self, axis: Axis, label: str) -> concurrent.futures.Future:
-        return axis.sup.submit(axis.drive_name, URGENT, axis.drive.stop, label, disarms=True)
+        return axis.sup.submit(axis.drive_name, Command.stop(axis.drive.stop, label))
 
 
 class Stream:

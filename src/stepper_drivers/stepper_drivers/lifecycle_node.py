@@ -24,7 +24,7 @@ import time
 from rclpy.lifecycle import LifecycleNodeMixin, LifecycleState, TransitionCallbackReturn
 
 from .node import SHUTDOWN_STOP_TIMEOUT_S, DriveNode
-from .supervisor import COMMAND, URGENT
+from .commands import Command
 
 # How long on_configure waits for every drive's first connect (identity and state read).
 CONFIGURE_TIMEOUT_S = 10.0
@@ -83,7 +83,7 @@ class ManagedDriveNode(LifecycleNodeMixin, DriveNode):
         self._label = 'active'
         for h in self.handles.values():
             if h.cfg.params.get('auto_enable'):
-                h.sup.submit(h.name, COMMAND, h.drive.enable, 'auto_enable', motion=False) \
+                h.sup.submit(h.name, Command.enable(h.drive.enable, 'auto_enable')) \
                     .add_done_callback(lambda f, h=h: self._auto_enabled(h, f))
         self.log.info('active: commands are taken')
         return result
@@ -121,7 +121,7 @@ class ManagedDriveNode(LifecycleNodeMixin, DriveNode):
     # -------------------------------------------------------------------------------- helpers
     def _stop_all(self, why: str) -> None:
         self.trajectories.follower.stop(f'node {why}')
-        futs = [h.sup.submit(h.name, URGENT, h.drive.stop, f'{why}: stop', disarms=True)
+        futs = [h.sup.submit(h.name, Command.stop(h.drive.stop, f'{why}: stop'))
                 for h in self.handles.values() if h.connected]
         deadline = time.monotonic() + DEACTIVATE_STOP_TIMEOUT_S
         for fut in futs:

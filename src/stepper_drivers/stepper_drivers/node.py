@@ -55,8 +55,8 @@ from .drive import (Drive, DriveError, DriveState, Homing, HomingState, Motion, 
 from .joint_state_cdr import JointStateCdr
 from .params import BusConfig, DriveConfig, ParameterError, current_values
 from .node_trajectory import TrajectoryInterface
-from .supervisor import (COMMAND, MAINTENANCE, STREAM, URGENT, BusSupervisor, Cancelled, Slot,
-                         Superseded)
+from .commands import Command, JobKind
+from .supervisor import BusSupervisor, Cancelled, Slot, Superseded
 
 # Position tolerance for "target reached" in a MoveTo action, in steps.
 TARGET_TOLERANCE_STEPS = 2
@@ -666,9 +666,8 @@ class DriveNode(Node):
         except CommandRefused:
             return
         motion = h.motion()
-        fut = h.sup.submit(h.name, STREAM, lambda: h.drive.move_to(steps, motion),
-                           f'{what} {position}', topic='position', disarms=True,
-                           hand_over=True)
+        fut = h.sup.submit(h.name, Command.position_stream(
+            lambda: h.drive.move_to(steps, motion), f'{what} {position}'), hand_over=True)
         fut.add_done_callback(lambda f: self._job_failed(h, f'{what} {position}', f))
 
     def command_velocity(self, h: DriveHandle, velocity: float) -> None:
@@ -685,8 +684,8 @@ class DriveNode(Node):
             # armed before anything is written: a write whose reply is lost still ran
             h.sup.arm_watchdog(h.name)
         steps_s, motion = h.conv.to_steps(velocity), h.motion()
-        fut = h.sup.submit(h.name, STREAM, lambda: h.drive.set_velocity(steps_s, motion), what,
-                           topic='velocity', disarms=velocity == 0.0, hand_over=True)
+        fut = h.sup.submit(h.name, Command.velocity_stream(
+            lambda: h.drive.set_velocity(steps_s, motion), what, velocity), hand_over=True)
         fut.add_done_callback(lambda f: self._job_failed(h, what, f))
 
     def on_joint_command(self, msg: JointState) -> None:
@@ -772,10 +771,10 @@ class DriveNode(Node):
                 raise Cancelled('the node is shutting down')
         return published
 
-    async def _run_job(self, h: DriveHandle, kind: str, fn: Callable, label: str,
-                       **kw) -> Any:
-        return await self._await(h.sup.submit(h.name, kind, fn, label, hand_over=kind == URGENT,
-                                              **kw), JOB_TIMEOUT_S)
+    async def _run_job(self, h: DriveHandle, command: Command) -> Any:
+        return await self._await(h.sup.submit(h.name, command,
+                                              hand_over=command.kind == JobKind.URGENT),
+                                 JOB_TIMEOUT_S)
 
     async def _respond(self, h: DriveHandle, resp, work, ok_message: Callable[[Any], str]):
         """Await work(); fill a success/message response; errors become success=false."""
@@ -793,10 +792,9 @@ class DriveNode(Node):
         async def work():
             self._check_link(h, 'enable' if req.data else 'disable', safe=not req.data)
             if req.data:
-                await self._run_job(h, COMMAND, h.drive.enable, 'enable', motion=False)
+                await self._run_job(h, Command.enable(h.drive.enable))
             else:
-                await self._run_job(h, URGENT, h.drive.disable, 'disable', disarms=True,
-                                    motion=False)
+                await self._run_job(h, Command.disable(h.drive.disable))
             await self.published(h)
             return h.state.state.value
         return await self._respond(h, resp, work, lambda st: f'{h.name}: {st}')
@@ -804,7 +802,7 @@ class DriveNode(Node):
     async def srv_stop(self, h: DriveHandle, req, resp):
         async def work():
             self._check_link(h, 'stop', safe=True)
-            await self._run_job(h, URGENT, h.drive.stop, 'stop', disarms=True)
+            await self._run_job(h, Command.stop(h.drive.stop))
             await self.published(h)
         return await self._respond(h, resp, work,
                                    lambda _: f'{h.name}: stopping with the profile deceleration')
@@ -816,8 +814,7 @@ class DriveNode(Node):
             self.refuse(h, f'home: drive is in FAULT 0x{h.state.fault_code:04X} '
                            f'({h.state.fault_text}); call fault_reset first')
         homing = h.homing()
-        note = await self._run_job(h, COMMAND, lambda: h.drive.start_homing(homing), 'home',
-                                   disarms=True)
+        note = await self._run_job(h, Command.homing(lambda: h.drive.start_homing(homing)))
         timeout_s = h.param('homing.timeout_s')
         deadline = self.get_clock().now().nanoseconds * 1e-9 + timeout_s
         fresh = await self._next_poll(h)
@@ -860,7 +857,7 @@ class DriveNode(Node):
 
     async def _stop_quietly(self, h: DriveHandle, why: str) -> None:
         try:
-            await self._run_job(h, URGENT, h.drive.stop, f'stop ({why})', disarms=True)
+            await self._run_job(h, Command.stop(h.drive.stop, f'stop ({why})'))
         except DriveError as e:
             self.log.error(f'{h.name}: stop ({why}) failed: {e}')
 
@@ -882,8 +879,7 @@ class DriveNode(Node):
                 await self.published(h)
                 return f'the identity matches again: driven, state {h.state.state.value}'
             self._check_link(h, 'fault_reset')
-            remaining = await self._run_job(h, COMMAND, h.drive.fault_reset, 'fault_reset',
-                                            motion=False)
+            remaining = await self._run_job(h, Command.fault_reset(h.drive.fault_reset))
             await self.published(h)
             if remaining:
                 raise DriveError(f'fault remains: {remaining}')
@@ -893,8 +889,8 @@ class DriveNode(Node):
     async def srv_save_params(self, h: DriveHandle, req, resp):
         async def work():
             self._check_link(h, 'save_params')
-            return await self._run_job(h, MAINTENANCE, h.drive.save_params, 'save_params',
-                                       motion=False)
+            return await self._run_job(h, Command.maintenance(h.drive.save_params,
+                                                              'save_params'))
         return await self._respond(h, resp, work, lambda note: f'{h.name}: parameters saved'
                                    + (f'; {note}' if note else ''))
 
@@ -903,9 +899,9 @@ class DriveNode(Node):
 
         async def work():
             self._check_link(h, 'read_register', safe=True)
-            value = await self._run_job(
-                h, MAINTENANCE, lambda: h.drive.read_register(req.address, req.data_type),
-                f'read_register {req.address}', motion=False)
+            value = await self._run_job(h, Command.maintenance(
+                lambda: h.drive.read_register(req.address, req.data_type),
+                f'read_register {req.address}'))
             if isinstance(value, str):
                 resp.text = value
             else:
@@ -922,10 +918,9 @@ class DriveNode(Node):
                 self.refuse(h, f'write_register {req.address}: raw writes are disabled '
                                f'(set drives.{h.name}.allow_raw_write: true)')
             self._check_link(h, 'write_register')
-            # a raw write may be a controlword: a stop drops it like any motion command
-            await self._run_job(
-                h, MAINTENANCE, lambda: h.drive.write_register(req.address, req.data_type, value),
-                f'write_register {req.address}')
+            await self._run_job(h, Command.raw_write(
+                lambda: h.drive.write_register(req.address, req.data_type, value),
+                f'write_register {req.address}'))
         return await self._respond(h, resp, work,
                                    lambda _: f'{req.address} ({req.data_type}) := {value}')
 
@@ -936,8 +931,8 @@ class DriveNode(Node):
         try:
             steps = self._check_position(h, 'move_to', target)
             motion = h.motion()
-            await self._run_job(h, COMMAND, lambda: h.drive.move_to(steps, motion),
-                                f'move_to {target}', disarms=True)
+            await self._run_job(h, Command.move(lambda: h.drive.move_to(steps, motion),
+                                                f'move_to {target}'))
             fb = MoveTo.Feedback()
             settled, last = 0, None
             await self._next_poll(h)

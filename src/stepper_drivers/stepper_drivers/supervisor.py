@@ -49,13 +49,14 @@ import time
 import traceback
 from typing import Any, Callable, Iterable
 
+from .commands import Command, JobKind
 from .drive import (Bus, Drive, DriveError, DriveState, IdentityError, LinkError, State, complete,
                     is_steps)
 
 logger = logging.getLogger(__name__)
 
-URGENT, COMMAND, STREAM, MAINTENANCE = 'urgent', 'command', 'stream', 'maintenance'
-CONNECT = 'connect'     # the owner's own connection attempt
+URGENT, COMMAND, STREAM = JobKind.URGENT, JobKind.COMMAND, JobKind.STREAM
+MAINTENANCE, CONNECT = JobKind.MAINTENANCE, JobKind.CONNECT
 # The refusal of SCHED_FIFO is told once per process (every bus owner of a node asks for it).
 _priority_lock = threading.Lock()
 _priority_refusal_told = False
@@ -89,7 +90,7 @@ class NotConnected(DriveError):
 @dataclasses.dataclass
 class Job:
     drive: str
-    kind: str
+    kind: JobKind
     fn: Callable[[], Any]
     label: str
     future: concurrent.futures.Future
@@ -201,10 +202,10 @@ class BusSupervisor:
         """The owner sleeps, waiting for work or its next poll."""
         return self._idle
 
-    def submit(self, drive: str, kind: str, fn: Callable[[], Any], label: str, *,
-               topic: str = '', disarms: bool = False, motion: bool = True,
-               polled: bool = False, hand_over: bool = False) -> concurrent.futures.Future:
-        """Queue `fn` (called in the owner thread; may return Steps) for `drive`.
+    def submit(self, drive: str, command: Command, *, hand_over: bool = False
+               ) -> concurrent.futures.Future:
+        """Queue `command` for `drive` (its fn is called in the owner thread; may return
+        Steps); its kind and flags come from its constructor (commands.py).
 
         hand_over: when the owner sleeps, wait (at most HAND_OVER_MAX_S, GIL released) until
         it has taken the job. For commands from a ROS callback: without it the executor thread
@@ -213,8 +214,9 @@ class BusSupervisor:
         9's command-to-wire figures in docs/benchmarks.md). A busy owner (a transaction in
         flight) is not waited for: on a serial line that would hold the executor 20-30 ms."""
         fut: concurrent.futures.Future = concurrent.futures.Future()
-        job = Job(drive, kind, fn, label, fut, topic, disarms, motion, self.clock(),
-                  polled=polled)
+        kind, label, topic = command.kind, command.label, command.topic
+        job = Job(drive, kind, command.fn, label, fut, topic, command.disarms, command.motion,
+                  self.clock(), polled=command.polled)
         with self._cv:
             job.arm_seq = self.slots[drive].arm_seq
             if self._stopping:
@@ -596,8 +598,9 @@ class BusSupervisor:
         self.on_event('warning', slot.name, f'velocity watchdog: no velocity_command for '
                       f'{timeout_s:g} s (command_timeout_s), stopping')
         slot.watchdog_retry_t = self.clock() + WATCHDOG_RETRY_S
-        job = Job(slot.name, URGENT, slot.drive.stop, 'watchdog stop',
-                  concurrent.futures.Future(), disarms=True, enqueued_t=self.clock(),
+        stop = Command.stop(slot.drive.stop, 'watchdog stop')
+        job = Job(slot.name, stop.kind, stop.fn, stop.label, concurrent.futures.Future(),
+                  disarms=stop.disarms, motion=stop.motion, enqueued_t=self.clock(),
                   arm_seq=slot.arm_seq)
         job.future.add_done_callback(lambda f: f.exception() and self.on_event(
             'error', slot.name, f'velocity watchdog: stop failed: {f.exception()}'))
@@ -755,7 +758,7 @@ class BusSupervisor:
                       + ('; the identity matches again: driven' if again else ''))
         self._resolve_connect_waiters(slot, None, identity)
         if slot.name in self.auto_enable and slot.reconnects == 1:
-            self.submit(slot.name, COMMAND, slot.drive.enable, 'auto_enable', motion=False) \
+            self.submit(slot.name, Command.enable(slot.drive.enable, 'auto_enable')) \
                 .add_done_callback(lambda f, n=slot.name: self._auto_enabled(n, f))
 
     def _auto_enabled(self, name: str, fut: concurrent.futures.Future) -> None:

@@ -7,6 +7,7 @@ import time
 
 import pytest
 
+from stepper_drivers.commands import Command
 from stepper_drivers.follow import REPLACED, Axis, Follower
 from stepper_drivers.supervisor import COMMAND, BusSupervisor
 from stepper_sim.harness import wait_for
@@ -40,7 +41,7 @@ def rig(tmp_path):
         wait_for(lambda: all(s.connected and s.polls for s in sup.slots.values()), 5.0,
                  'both drives connected')
         for name, d in drives.items():
-            sup.submit(name, COMMAND, d.enable, 'enable').result(5.0)
+            sup.submit(name, Command(COMMAND, d.enable, 'enable')).result(5.0)
         # The drive takes its first set point max(200 ms, register 1096) after current-on
         # (manual §12; the driver waits for it): trajectories here start after that.
         time.sleep(0.25)

@@ -15,13 +15,14 @@ import time
 
 import pytest
 from stepper_drivers import supervisor
+from stepper_drivers.commands import Command
 from stepper_drivers.drive import DriveError, IdentityError, LinkError, State
 from stepper_drivers.supervisor import COMMAND, BusSupervisor, NotConnected
 from stepper_drivers.vendors import rd4
 from stepper_drivers.vendors import vector_step as vs
 from stepper_drivers.vendors.xplus_mt import VENDOR as XPLUS_MT
 from stepper_sim.harness import wait_for
-from stepper_sim.rd4_sim import Rd4Unit, RtuLine
+from stepper_sim.rd4_sim import Rd4DriveSim, RtuLine
 from stepper_sim.socketcand_broker import SocketcandBroker
 from stepper_sim.vector_step_sim import NodeConfig, VectorStepSim
 from stepper_sim.xplus_mt_sim import XplusMtDriveConfig, XplusMtSim
@@ -75,7 +76,8 @@ def test_an_identity_error_is_not_driven_and_checked_again_for_ever(fast_recheck
         assert not slot.connected and slot.state.state == State.DISCONNECTED
         # never commanded meanwhile
         with pytest.raises(NotConnected):
-            sup.submit('axis1', COMMAND, lambda: drive.move_to(5, None), 'move').result(1.0)
+            sup.submit('axis1', Command(COMMAND, lambda: drive.move_to(5, None),
+                                        'move')).result(1.0)
         wait_for(lambda: len(calls) >= 5, 5.0, 'five identity checks')
         gaps = [b - a for a, b in zip(calls, calls[1:])]
         assert gaps[0] == pytest.approx(0.2, abs=0.15), gaps
@@ -199,7 +201,7 @@ class Rd4(VendorRig):
     wrong = r'HW Version \[0x0F\] reads HW 1, RD5'
 
     def __init__(self, tmp_path, wrong=False):
-        self.unit = Rd4Unit('axis1', 1, hw_version=0x2001 if wrong else 0x0001)
+        self.unit = Rd4DriveSim('axis1', 1, hw_version=0x2001 if wrong else 0x0001)
         self.line = RtuLine([self.unit], tmp_path / 'rd4.pty', baud_switch=0x03)
         self.line.start()
         self.bus = rd4.make_bus({'port': str(tmp_path / 'rd4.pty'), 'baudrate': 19200,
@@ -321,7 +323,7 @@ def test_a_wrong_identity_is_not_driven_until_the_device_is_right(tmp_path, vend
         wait_for(lambda: len(rig.calls) >= 3, 10.0, 'checked again, twice')
         assert not slot.connected and slot.not_driven
         with pytest.raises(NotConnected):
-            rig.sup.submit(rig.name, COMMAND, rig.drive.enable, 'enable').result(2.0)
+            rig.sup.submit(rig.name, Command(COMMAND, rig.drive.enable, 'enable')).result(2.0)
         rig.make_right()
         wait_for(lambda: slot.connected and slot.polls, 10.0, 'driven again, no restart')
         assert slot.not_driven == ''

@@ -15,6 +15,7 @@ import time
 
 import pytest
 
+from stepper_drivers.commands import Command
 from stepper_drivers.drive import (Bus, Drive, DriveError, DriveState, IdentityError, LinkError,
                                    State)
 from stepper_drivers import supervisor
@@ -162,7 +163,7 @@ def result(fut: concurrent.futures.Future, timeout_s=3.0):
 # ----------------------------------------------------------------------------------- order
 def test_jobs_of_one_drive_run_in_the_order_submitted(bus):
     sup, line, d = bus()
-    futs = [sup.submit('axis1', COMMAND, lambda i=i: d['axis1'].move_to(i, None), f'm{i}')
+    futs = [sup.submit('axis1', Command(COMMAND, lambda i=i: d['axis1'].move_to(i, None), f'm{i}'))
             for i in range(10)]
     for f in futs:
         result(f)
@@ -172,12 +173,12 @@ def test_jobs_of_one_drive_run_in_the_order_submitted(bus):
 def test_a_newer_stream_command_replaces_the_one_still_waiting(bus):
     sup, line, d = bus()
     # keep the drive busy so the stream commands wait
-    busy = sup.submit('axis1', MAINTENANCE, d['axis1'].save_params, 'save', motion=False)
+    busy = sup.submit('axis1', Command(MAINTENANCE, d['axis1'].save_params, 'save', motion=False))
     wait_for(lambda: line.calls('axis1', 'save step'), 1.0, 'save started')
-    f1 = sup.submit('axis1', STREAM, lambda: d['axis1'].set_velocity(1.0, None), 'v1',
-                    topic='velocity')
-    f2 = sup.submit('axis1', STREAM, lambda: d['axis1'].set_velocity(2.0, None), 'v2',
-                    topic='velocity')
+    f1 = sup.submit('axis1', Command(STREAM, lambda: d['axis1'].set_velocity(1.0, None), 'v1',
+                                     topic='velocity'))
+    f2 = sup.submit('axis1', Command(STREAM, lambda: d['axis1'].set_velocity(2.0, None), 'v2',
+                                     topic='velocity'))
     with pytest.raises(Superseded, match='replaced by the newer v2'):
         result(f1)
     result(f2)
@@ -187,11 +188,14 @@ def test_a_newer_stream_command_replaces_the_one_still_waiting(bus):
 
 def test_a_stream_command_does_not_jump_over_a_command_between(bus):
     sup, line, d = bus()
-    busy = sup.submit('axis1', MAINTENANCE, d['axis1'].save_params, 'save', motion=False)
+    busy = sup.submit('axis1', Command(MAINTENANCE, d['axis1'].save_params, 'save', motion=False))
     wait_for(lambda: line.calls('axis1', 'save step'), 1.0, 'save started')
-    f1 = sup.submit('axis1', STREAM, lambda: d['axis1'].move_to(1, None), 'p1', topic='position')
-    f2 = sup.submit('axis1', COMMAND, lambda: d['axis1'].fault_reset(), 'reset', motion=False)
-    f3 = sup.submit('axis1', STREAM, lambda: d['axis1'].move_to(3, None), 'p3', topic='position')
+    f1 = sup.submit('axis1', Command(STREAM, lambda: d['axis1'].move_to(1, None), 'p1',
+                                     topic='position'))
+    f2 = sup.submit('axis1', Command(COMMAND, lambda: d['axis1'].fault_reset(), 'reset',
+                                     motion=False))
+    f3 = sup.submit('axis1', Command(STREAM, lambda: d['axis1'].move_to(3, None), 'p3',
+                                     topic='position'))
     for f in (busy, f1, f2, f3):
         result(f)
     calls = [c[2] for c in line.calls('axis1') if c[2] in ('move_to', 'fault_reset')]
@@ -209,15 +213,15 @@ def test_many_publishers_alternating_then_zero_end_stopped(bus):
         for i in range(250):
             v = 1.0 if (i + k) % 2 else -1.0
             sup.arm_watchdog('axis1')
-            sup.submit('axis1', STREAM, lambda v=v: d['axis1'].set_velocity(v, None), f'v{v}',
-                       topic='velocity')
+            sup.submit('axis1', Command(STREAM, lambda v=v: d['axis1'].set_velocity(v, None),
+                                        f'v{v}', topic='velocity'))
     threads = [threading.Thread(target=publisher, args=(k,)) for k in range(4)]
     for t in threads:
         t.start()
     for t in threads:
         t.join()
-    last = sup.submit('axis1', STREAM, lambda: d['axis1'].set_velocity(0.0, None), 'v0',
-                      topic='velocity', disarms=True)
+    last = sup.submit('axis1', Command(STREAM, lambda: d['axis1'].set_velocity(0.0, None), 'v0',
+                                       topic='velocity', disarms=True))
     result(last, 10.0)
     assert line.calls('axis1', 'set_velocity')[-1][3][0] == 0.0
     assert d['axis1'].velocity == 0.0
@@ -236,8 +240,8 @@ def test_a_command_handed_over_to_a_sleeping_owner_is_taken_before_submit_return
     sup, line, d = bus(publish_rate_hz=0.5)          # the owner sleeps about 2 s between polls
     for i in range(5):
         wait_for(lambda: sup.idle, 3.0, 'the owner asleep')
-        fut = sup.submit('axis1', STREAM, lambda i=i: d['axis1'].move_to(i, None), f'p{i}',
-                         topic='position', hand_over=True)
+        fut = sup.submit('axis1', Command(STREAM, lambda i=i: d['axis1'].move_to(i, None), f'p{i}',
+                                          topic='position'), hand_over=True)
         assert not sup.slots['axis1'].queue          # taken: popped from the drive's queue
         result(fut)
     assert [c[3][0] for c in line.calls('axis1', 'move_to')] == list(range(5))
@@ -249,11 +253,11 @@ def test_a_busy_owner_is_not_waited_for(bus, monkeypatch):
     monkeypatch.setattr(supervisor, 'HAND_OVER_MAX_S', 5.0)
     sup, line, d = bus()
     release = threading.Event()
-    busy = sup.submit('axis2', COMMAND, lambda: release.wait(5.0), 'a long transaction')
+    busy = sup.submit('axis2', Command(COMMAND, lambda: release.wait(5.0), 'a long transaction'))
     wait_for(lambda: sup.slots['axis2'].active is not None, 1.0, 'the owner busy')
     t0 = time.monotonic()
-    fut = sup.submit('axis1', STREAM, lambda: d['axis1'].move_to(1, None), 'p1',
-                     topic='position', hand_over=True)
+    fut = sup.submit('axis1', Command(STREAM, lambda: d['axis1'].move_to(1, None), 'p1',
+                                      topic='position'), hand_over=True)
     waited = time.monotonic() - t0
     assert len(sup.slots['axis1'].queue) == 1 and waited < supervisor.HAND_OVER_MAX_S
     release.set()
@@ -332,8 +336,8 @@ def test_cached_polls_of_a_cycle_run_together_and_an_urgent_job_still_goes_betwe
         names = [w[1] for w in reads]
         for k in range(0, len(names) - 3, 4):          # each cycle: every drive once, in order
             assert names[k:k + 4] == ['axis1', 'axis2', 'axis3', 'axis4'], names
-        drives['axis1'].on_read = lambda: sup.submit('axis3', URGENT, drives['axis3'].stop,
-                                                     'stop', motion=False)
+        drives['axis1'].on_read = lambda: sup.submit('axis3', Command(URGENT, drives['axis3'].stop,
+                                                                      'stop', motion=False))
         wait_for(lambda: line.calls('axis3', 'stop'), 2.0, 'the stop sent')
         (stop,) = line.calls('axis3', 'stop')
         after_stop = wait_for(lambda: (lambda names: names if len(names) >= 3 else None)(
@@ -348,7 +352,7 @@ def test_cached_polls_of_a_cycle_run_together_and_an_urgent_job_still_goes_betwe
 
 def test_a_long_operation_gives_the_bus_to_the_other_drives(bus):
     sup, line, d = bus()
-    fut = sup.submit('axis1', COMMAND, lambda: d['axis1'].start_homing(None), 'home')
+    fut = sup.submit('axis1', Command(COMMAND, lambda: d['axis1'].start_homing(None), 'home'))
     wait_for(lambda: line.calls('axis1', 'homing step'), 1.0, 'homing started')
     t0 = time.monotonic()
     polls0 = sup.slots['axis2'].polls
@@ -361,10 +365,10 @@ def test_a_long_operation_gives_the_bus_to_the_other_drives(bus):
 
 def test_stop_of_another_drive_during_a_long_operation_goes_next(bus):
     sup, line, d = bus()
-    fut = sup.submit('axis1', MAINTENANCE, d['axis1'].save_params, 'save', motion=False)
+    fut = sup.submit('axis1', Command(MAINTENANCE, d['axis1'].save_params, 'save', motion=False))
     wait_for(lambda: line.calls('axis1', 'save step'), 1.0, 'save started')
     t0 = time.monotonic()
-    stop = sup.submit('axis2', URGENT, d['axis2'].stop, 'stop', disarms=True)
+    stop = sup.submit('axis2', Command(URGENT, d['axis2'].stop, 'stop', disarms=True))
     result(stop)
     stop_t = line.calls('axis2', 'stop')[0][0]
     # nothing but the one transaction in flight went before it
@@ -376,31 +380,31 @@ def test_stop_of_another_drive_during_a_long_operation_goes_next(bus):
 
 def test_stop_during_homing_cuts_it_short_and_drops_queued_motion(bus):
     sup, line, d = bus()
-    home = sup.submit('axis1', COMMAND, lambda: d['axis1'].start_homing(None), 'home')
-    queued = sup.submit('axis1', STREAM, lambda: d['axis1'].move_to(5, None), 'p5',
-                        topic='position')
+    home = sup.submit('axis1', Command(COMMAND, lambda: d['axis1'].start_homing(None), 'home'))
+    queued = sup.submit('axis1', Command(STREAM, lambda: d['axis1'].move_to(5, None), 'p5',
+                                         topic='position'))
     wait_for(lambda: line.calls('axis1', 'homing step'), 1.0, 'homing started')
-    stop = sup.submit('axis1', URGENT, d['axis1'].stop, 'stop', disarms=True)
+    stop = sup.submit('axis1', Command(URGENT, d['axis1'].stop, 'stop', disarms=True))
     result(stop)
     n_steps = len(line.calls('axis1', 'homing step'))
     with pytest.raises(Cancelled, match='cut short by stop'):
         result(home)
     with pytest.raises(Cancelled, match='dropped by stop'):
         result(queued)
-    sup.submit('axis1', COMMAND, d['axis1'].fault_reset, 'sync', motion=False).result(2.0)
+    sup.submit('axis1', Command(COMMAND, d['axis1'].fault_reset, 'sync', motion=False)).result(2.0)
     assert len(line.calls('axis1', 'homing step')) == n_steps      # no step after the stop
     assert not line.calls('axis1', 'move_to')
 
 
 def test_disable_drops_a_queued_enable_but_a_stop_does_not(bus):
     sup, line, d = bus()
-    busy = sup.submit('axis1', MAINTENANCE, d['axis1'].save_params, 'save', motion=False)
+    busy = sup.submit('axis1', Command(MAINTENANCE, d['axis1'].save_params, 'save', motion=False))
     wait_for(lambda: line.calls('axis1', 'save step'), 1.0, 'save started')
-    enable = sup.submit('axis1', COMMAND, d['axis1'].enable, 'enable', motion=False)
-    result(sup.submit('axis1', URGENT, d['axis1'].stop, 'stop', disarms=True))
+    enable = sup.submit('axis1', Command(COMMAND, d['axis1'].enable, 'enable', motion=False))
+    result(sup.submit('axis1', Command(URGENT, d['axis1'].stop, 'stop', disarms=True)))
     assert not enable.done()
-    result(sup.submit('axis1', URGENT, d['axis1'].disable, 'disable', disarms=True,
-                      motion=False))
+    result(sup.submit('axis1', Command(URGENT, d['axis1'].disable, 'disable', disarms=True,
+                                       motion=False)))
     with pytest.raises(Cancelled, match='dropped by disable'):
         result(enable)
     result(busy)
@@ -417,8 +421,8 @@ def test_watchdog_stops_on_its_own_clock_not_at_the_next_poll(bus):
     sup, line, d = bus(publish_rate_hz=2.0, command_timeout_s=timeout_s)   # 0.5 s polls
     t0 = time.monotonic()
     sup.arm_watchdog('axis1')
-    result(sup.submit('axis1', STREAM, lambda: d['axis1'].set_velocity(5.0, None), 'v5',
-                      topic='velocity'))
+    result(sup.submit('axis1', Command(STREAM, lambda: d['axis1'].set_velocity(5.0, None), 'v5',
+                                       topic='velocity')))
     wait_for(lambda: _stop_time(line, 'axis1', t0), timeout_s + 1.0, 'watchdog stop')
     late = _stop_time(line, 'axis1', t0) - (t0 + timeout_s)
     # within one transaction in flight (and scheduling), far below the 0.5 s poll period
@@ -431,8 +435,8 @@ def test_a_refused_command_during_a_velocity_run_leaves_the_watchdog_armed(bus, 
     sup, line, d = bus(command_timeout_s=timeout_s)
     drive = d['axis1']
     sup.arm_watchdog('axis1')
-    result(sup.submit('axis1', STREAM, lambda: drive.set_velocity(5.0, None), 'v5',
-                      topic='velocity'))
+    result(sup.submit('axis1', Command(STREAM, lambda: drive.set_velocity(5.0, None), 'v5',
+                                       topic='velocity')))
     t0 = time.monotonic()
     drive.fail[refused if refused != 'start_homing' else 'homing step'] = \
         DriveError(f'{refused} refused: stop first')
@@ -440,7 +444,7 @@ def test_a_refused_command_during_a_velocity_run_leaves_the_watchdog_armed(bus, 
           'start_homing': lambda: drive.start_homing(None)}[refused]
     kind = URGENT if refused == 'stop' else COMMAND
     with pytest.raises(DriveError, match='refused'):
-        result(sup.submit('axis1', kind, fn, refused, disarms=True))
+        result(sup.submit('axis1', Command(kind, fn, refused, disarms=True)))
     assert sup.watchdog_armed('axis1')
     stops = 2 if refused == 'stop' else 1          # the refused one, then the watchdog's
     wait_for(lambda: len(line.calls('axis1', 'stop')) >= stops, timeout_s + 1.0,
@@ -458,8 +462,8 @@ def test_a_lost_reply_to_a_velocity_write_is_stopped_after_the_reconnect(bus):
     sup.arm_watchdog('axis1')
     t0 = time.monotonic()
     with pytest.raises(LinkError):
-        result(sup.submit('axis1', STREAM, lambda: drive.set_velocity(5.0, None), 'v5',
-                          topic='velocity'))
+        result(sup.submit('axis1', Command(STREAM, lambda: drive.set_velocity(5.0, None), 'v5',
+                                           topic='velocity')))
     assert drive.velocity == 5.0 and sup.watchdog_armed('axis1')
     wait_for(lambda: _stop_time(line, 'axis1', t0), timeout_s + 2.0, 'watchdog stop')
     wait_for(lambda: drive.velocity == 0.0 and not sup.watchdog_armed('axis1'), 5 * TX_S,
@@ -471,13 +475,13 @@ def test_a_stop_refused_while_disconnected_leaves_the_watchdog_armed(bus):
     sup, line, d = bus(command_timeout_s=timeout_s, reconnect_period_s=0.2)
     drive = d['axis1']
     sup.arm_watchdog('axis1')
-    result(sup.submit('axis1', STREAM, lambda: drive.set_velocity(5.0, None), 'v5',
-                      topic='velocity'))
+    result(sup.submit('axis1', Command(STREAM, lambda: drive.set_velocity(5.0, None), 'v5',
+                                       topic='velocity')))
     drive.fail_always['read_state'] = LinkError('link down')
     drive.fail_always['connect'] = LinkError('link down')
     wait_for(lambda: not sup.slots['axis1'].connected, 1.0, 'link lost')
     with pytest.raises(NotConnected):
-        result(sup.submit('axis1', URGENT, drive.stop, 'stop', disarms=True))
+        result(sup.submit('axis1', Command(URGENT, drive.stop, 'stop', disarms=True)))
     assert sup.watchdog_armed('axis1')
     t_back = time.monotonic()
     drive.fail_always.clear()
@@ -517,7 +521,7 @@ def test_shutdown_stops_every_drive_then_disables_those_named(bus):
     assert [c[1] for c in line.calls(call='disable') if c[0] >= t0] == ['axis2']
     assert not line.is_open
     with pytest.raises(Cancelled):
-        result(sup.submit('axis1', COMMAND, d['axis1'].fault_reset, 'late'))
+        result(sup.submit('axis1', Command(COMMAND, d['axis1'].fault_reset, 'late')))
 
 
 def test_a_command_that_comes_while_the_shutdown_runs_never_reaches_the_wire(bus):
@@ -529,10 +533,10 @@ def test_a_command_that_comes_while_the_shutdown_runs_never_reaches_the_wire(bus
     ender = threading.Thread(target=sup.shutdown, args=(1.0,), kwargs={'disable': ['axis2']})
     ender.start()
     wait_for(lambda: _stop_time(line, 'axis1', t0), 2.0, 'the shutdown stop of axis1')
-    late = [sup.submit('axis1', STREAM, lambda: d['axis1'].set_velocity(7.0, None), 'v7',
-                       topic='velocity'),
-            sup.submit('axis2', COMMAND, d['axis2'].enable, 'enable', motion=False),
-            sup.submit('axis2', URGENT, d['axis2'].stop, 'stop')]
+    late = [sup.submit('axis1', Command(STREAM, lambda: d['axis1'].set_velocity(7.0, None), 'v7',
+                                        topic='velocity')),
+            sup.submit('axis2', Command(COMMAND, d['axis2'].enable, 'enable', motion=False)),
+            sup.submit('axis2', Command(URGENT, d['axis2'].stop, 'stop'))]
     ender.join(3.0)
     assert not ender.is_alive()
     for fut in late:
@@ -561,13 +565,13 @@ def test_a_confirmation_does_not_disarm_a_velocity_accepted_after_it(bus):
     timeout_s = 1.0         # longer than the save the commands wait behind (0.5 s)
     sup, line, d = bus(command_timeout_s=timeout_s)
     drive = d['axis1']
-    busy = sup.submit('axis1', MAINTENANCE, drive.save_params, 'save', motion=False)
+    busy = sup.submit('axis1', Command(MAINTENANCE, drive.save_params, 'save', motion=False))
     wait_for(lambda: line.calls('axis1', 'save step'), 1.0, 'save started')
-    pos = sup.submit('axis1', STREAM, lambda: drive.move_to(1, None), 'p1', topic='position',
-                     disarms=True)
+    pos = sup.submit('axis1', Command(STREAM, lambda: drive.move_to(1, None), 'p1',
+                                      topic='position', disarms=True))
     sup.arm_watchdog('axis1')
-    vel = sup.submit('axis1', STREAM, lambda: drive.set_velocity(5.0, None), 'v5',
-                     topic='velocity')
+    vel = sup.submit('axis1', Command(STREAM, lambda: drive.set_velocity(5.0, None), 'v5',
+                                      topic='velocity'))
     result(busy)
     result(pos)
     result(vel)
@@ -638,7 +642,7 @@ def test_an_owner_that_fails_stops_its_drives_says_why_and_ends_once():
     sup.shutdown(0.5)
     assert len(line.calls()) == on_wire
     with pytest.raises(Cancelled):
-        result(sup.submit('axis1', COMMAND, drives['axis1'].fault_reset, 'late'))
+        result(sup.submit('axis1', Command(COMMAND, drives['axis1'].fault_reset, 'late')))
 
 
 @pytest.mark.parametrize('priority', [0, 10])
@@ -654,8 +658,8 @@ def test_owner_thread_priority_puts_the_owner_alone_on_sched_fifo(bus, priority)
         assert os.sched_getparam(owner).sched_priority == priority
     assert os.sched_getscheduler(threading.get_native_id()) == os.SCHED_OTHER
     assert bool(priority and not fifo) == any('owner_thread_priority' in e[2] for e in sup.events)
-    assert result(sup.submit('axis1', COMMAND, lambda: drives['axis1'].move_to(5, None),
-                             'move')) is None
+    assert result(sup.submit('axis1', Command(COMMAND, lambda: drives['axis1'].move_to(5, None),
+                                              'move'))) is None
 
 
 def test_a_refused_owner_thread_priority_is_a_warning_and_the_bus_works(bus):
@@ -673,5 +677,5 @@ def test_a_refused_owner_thread_priority_is_a_warning_and_the_bus_works(bus):
     other, _, _ = bus(owner_thread_priority=100)
     assert os.sched_getscheduler(other._thread.native_id) == os.SCHED_OTHER
     assert not [e for e in other.events if 'owner_thread_priority' in e[2]]
-    assert result(sup.submit('axis1', COMMAND, lambda: drives['axis1'].move_to(5, None),
-                             'move')) is None
+    assert result(sup.submit('axis1', Command(COMMAND, lambda: drives['axis1'].move_to(5, None),
+                                              'move'))) is None
