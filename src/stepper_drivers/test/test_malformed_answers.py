@@ -21,7 +21,7 @@ from stepper_drivers.vendors import rd4
 from stepper_drivers.vendors import vector_step as vs
 from stepper_drivers.vendors import vector_step_map as vm
 from stepper_drivers.vendors.xplus_mt import VENDOR as XPLUS_MT
-from stepper_sim.rd4_sim import Rd4Unit, RtuLine
+from stepper_sim.rd4_sim import Rd4DriveSim, RtuLine
 from stepper_sim.socketcand_broker import SocketcandBroker
 
 from test_modbus_tcp_bus import ScriptedServer
@@ -115,7 +115,7 @@ def test_x_mind_k_parser_refuses_y_to_a_data_request():
 
 
 # ------------------------------------------------------------------------------------ RD4
-class CraftedUnit(Rd4Unit):
+class CraftedUnit(Rd4DriveSim):
     """An RD4 that answers one request (function code, address) with crafted bytes."""
 
     def __init__(self, crafted):

@@ -19,7 +19,7 @@ from stepper_drivers.protocol import modbus_rtu as rtu
 from stepper_sim.harness import wait_for
 from stepper_drivers.vendors import rd4
 from stepper_drivers.vendors import rd4_map as rm
-from stepper_sim.rd4_sim import Rd4Options, Rd4Unit, RtuLine, TICK_S
+from stepper_sim.rd4_sim import Rd4Options, Rd4DriveSim, RtuLine, TICK_S
 
 
 def crc_modbus(data: bytes) -> bytes:
@@ -49,8 +49,8 @@ class Rig:
     def __init__(self, tmp_path, units=None, options=None, **drive_params):
         self.frames = []
         tmp_path.mkdir(exist_ok=True)
-        units = units or [Rd4Unit('axis1', 1, options=options),
-                          Rd4Unit('axis2', 2, 'T48', options=options)]
+        units = units or [Rd4DriveSim('axis1', 1, options=options),
+                          Rd4DriveSim('axis2', 2, 'T48', options=options)]
         self.line = RtuLine(units, tmp_path / 'rd4.pty', baud_switch=0x03,
                             tap=lambda d, frame, t: self.frames.append((d, frame, t)))
         self.line.start()
@@ -527,7 +527,7 @@ def test_reconnect_keeps_the_intent_only_while_the_unit_holds_the_last_word(rig)
 def unit_with(hw_version=0x0001, **changes):
     """A simulated unit with attributes, or holding registers (hr_<hex address>), changed."""
     def make():
-        u = Rd4Unit('axis1', 1, hw_version=hw_version)
+        u = Rd4DriveSim('axis1', 1, hw_version=hw_version)
         for key, value in changes.items():
             if key.startswith('hr_'):
                 u.hr[int(key[3:], 16)] = value
@@ -555,7 +555,7 @@ def test_connect_refuses_a_device_that_is_plainly_not_an_rd4(rig, make, text):
 
 
 def test_identity_baud_register_garbage_and_missing_registers(rig):
-    r = rig(units=[Rd4Unit('axis1', 1)])
+    r = rig(units=[Rd4DriveSim('axis1', 1)])
     d = r.drives['axis1']
     with r.line.lock:
         r.unit().baud_switch = 0x01                       # says 9600 8E1, answers at 19200
@@ -571,7 +571,7 @@ def test_identity_baud_register_garbage_and_missing_registers(rig):
         r.unit().inject('clear_fault', 0, 0)
     complete(d.connect())
 
-    class NotAnRd4(Rd4Unit):
+    class NotAnRd4(Rd4DriveSim):
         """Another Modbus device: no input registers at all."""
         def handle(self, request, frame):
             if request.function_code == rtu.FC_READ_INPUT_REGISTERS:
@@ -585,7 +585,7 @@ def test_identity_baud_register_garbage_and_missing_registers(rig):
 
 
 def test_out_of_range_machine_data_the_unit_lists_as_wrong_is_still_an_rd4(rig):
-    u = Rd4Unit('axis1', 1)
+    u = Rd4DriveSim('axis1', 1)
     u.write(rm.HR['WORK_SPEED'].address, [2000], rtu.FC_WRITE_SINGLE_REGISTER)  # §5.4: alarm
     r = rig(units=[u])
     d = r.drives['axis1']
@@ -725,7 +725,7 @@ def test_transport_failures_are_one_line_link_errors(tmp_path):
         bus.close()
         server.close()
 
-    line = RtuLine([Rd4Unit('axis1', 1)], tmp_path / 'rd4.pty', baud_switch=0x03)
+    line = RtuLine([Rd4DriveSim('axis1', 1)], tmp_path / 'rd4.pty', baud_switch=0x03)
     line.start()
     try:
         bus = rd4.make_bus({'port': str(tmp_path / 'rd4.pty'), 'baudrate': 19200,

@@ -19,10 +19,8 @@ drive sees (switch transitions, motion direction, index pulses). The method tabl
 `HOMING_METHODS` maps a method number to a procedure (a generator, see `Procedure`) and can be
 extended with `register_homing_method()` for vendor methods.
 
-Why one file of about 640 lines: no strong reason. HomingRun uses only SimAxis's public API and
-the AxisEvent contract (each edge delivered at its exact time and position, so a procedure can
-re-plan there). A split would go along that seam: HomingRun, the procedures and HOMING_METHODS
-(about 320 lines) into stepper_sim/homing.py; SimAxis and AxisEvent stay here.
+HomingRun uses only SimAxis's public API and the AxisEvent contract (each edge delivered at its
+exact time and position, so a procedure can re-plan there).
 """
 
 from __future__ import annotations

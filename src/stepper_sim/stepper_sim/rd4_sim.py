@@ -1,9 +1,9 @@
 """Simulated Lika RD4 ROTADRIVE units on a Modbus RTU line (a pseudo-terminal it creates).
 
 Two layers, no rclpy below `main()`:
-- `Rd4Unit`: one RD4 by node id: the register map of the manual §8.1 with the §10 defaults, the
-  Control Word [0x2A] logic of §8.1.1 (edges and levels), positioning and jog on a `MotionModel`,
-  software limits, alarms and alarm reset, watchdog, save/load defaults/preset.
+- `Rd4DriveSim`: one RD4 by node id: the register map of the manual §8.1 with the §10 defaults,
+  the Control Word [0x2A] logic of §8.1.1 (edges and levels), positioning and jog on a
+  `MotionModel`, software limits, alarms and alarm reset, watchdog, save/load defaults/preset.
 - `RtuLine`: the serial line: a `pty_line.PtyLine` (an `os.openpty()` pair, the slave side's
   path handed to the driver through a symlink) whose bytes it frames as RTU itself. Every
   frame's CRC is checked; a bad CRC, a broadcast or a frame for another node id gets silence
@@ -14,10 +14,8 @@ Two layers, no rclpy below `main()`:
 Behaviour the manual leaves open is decided as in the spec's best readings (spec/lika_rd4.md §10),
 most of them switchable (see `Rd4Options`); docs/rd4.md lists them.
 
-Why one file of about 810 lines: no shared state needs it: RtuLine uses only a unit's node_id,
-handle(), update() and frame_received(); Rd4Unit's parts (map, Control Word, motion, alarms,
-flash) share its register image. A split would follow xplus_mt_device.py: Rd4Options and Rd4Unit
-(about 470 lines) into rd4_device.py; RtuLine, the backend and build() stay here.
+RtuLine uses only a unit's node_id, handle(), update() and frame_received(); Rd4DriveSim's parts
+(map, Control Word, motion, alarms, flash) share its register image.
 """
 
 from __future__ import annotations
@@ -70,7 +68,7 @@ def _ms(value: int) -> float:
     return value / 1000.0
 
 
-class Rd4Unit:
+class Rd4DriveSim:
     """One simulated RD4. Thread-safety is the caller's (RtuLine holds its lock)."""
 
     def __init__(self, name: str, node_id: int, model: str = 'T32', *,
@@ -549,14 +547,14 @@ class RtuLine(PtyLine):
     thread_name = 'rd4-line'
     tick_s = TICK_S
 
-    def __init__(self, units: Sequence[Rd4Unit], link_path: str | os.PathLike | None = None,
+    def __init__(self, units: Sequence[Rd4DriveSim], link_path: str | os.PathLike | None = None,
                  baud_switch: int = rm.BAUD_SWITCH_DEFAULT, line_timing: bool = False,
                  turnaround_s: float = 0.0, check_baud: bool = True,
                  tap: Callable[[str, bytes, float], None] | None = None):
         if baud_switch not in rm.BAUD_SWITCH:
             raise ValueError(f'baud_switch: {baud_switch} is not in the dip-switch table '
                              '(allowed: 0..5, §4.4.2)')
-        by_id: dict[int, Rd4Unit] = {}
+        by_id: dict[int, Rd4DriveSim] = {}
         for unit in units:
             unit.baud_switch = baud_switch     # every unit on a line has the line's setting
             if unit.node_id in by_id:
@@ -694,7 +692,7 @@ class RtuLine(PtyLine):
             return rtu.exception_response(address, frame[1], rtu.SERVER_DEVICE_FAILURE)
 
     # ------------------------------------------------------------------------- access
-    def unit(self, name: str) -> Rd4Unit:
+    def unit(self, name: str) -> Rd4DriveSim:
         return self.device(name)
 
 
@@ -724,7 +722,7 @@ def build_line(params: Mapping, drives: Mapping[str, Mapping]) -> RtuLine:
     units = []
     for name, p in drives.items():
         node_id = int(p.get('node_id', 1))
-        units.append(Rd4Unit(
+        units.append(Rd4DriveSim(
             name, node_id, str(p.get('model', 'T32')), options=options, baud_switch=baud_switch,
             sw_version=int(p.get('sw_version', 0x0102)),
             hw_version=int(p.get('hw_version', 0x0001)),

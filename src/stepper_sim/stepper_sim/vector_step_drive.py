@@ -1,4 +1,4 @@
-"""Vector Step simulator, the AEC drive application: a mixin of VectorStepNode.
+"""Vector Step simulator, the AEC drive application: the base class of VectorStepNode.
 
 The CiA 402 state machine, statusword state bits and PP handshake are the shared device-side
 `cia402_device` (profile VECTOR_STEP); this adds what the Vector Step does around them: option
@@ -16,10 +16,8 @@ two-position buffer 0x60C1 (filled by SDO or RxPDO), the start once IP is enable
 elements are written, one linear segment per SYNC (`ip_on_sync`, called by vector_step_pdo's
 `on_sync`) over the period of 0x60C2, and the EMCYs FF03 (underflow), FF04/FF05 (SYNC early/late).
 
-Why one file of about 810 lines: one drive application; modes, alarms and storage all read and
-write the same object dictionary, CiA 402 state and SimAxis (NMT, SDO and PDO are already apart
-in vector_step_nmt/_sdo/_pdo). A split would follow xplus_mt_modes.py: the mode handlers (JOG,
-homing, interpolated position `_ip_*`/`ip_on_sync`, about 250 lines) into a mixin.
+One file: one drive application; modes, alarms and storage all read and write the same object
+dictionary, CiA 402 state and SimAxis (NMT, SDO and PDO are apart in vector_step_nmt/_sdo/_pdo).
 """
 
 from __future__ import annotations
@@ -104,8 +102,35 @@ def _rhsts_for(message: str) -> int:
     return vm.RHSTS_UNKNOWN
 
 
-class AecDrive:
-    """The application of one node (state: VectorStepNode)."""
+class VectorStepDriveSim:
+    """The AEC drive application of one node, the base class of VectorStepNode.
+
+    VectorStepNode creates what this works on (`od`, `local`, `axis`, `cfg`, `sim`, `eeprom`,
+    the fault-injection flags) and the CANopen parts it reports through: `nmt` (EMCY, boot-up,
+    the SYNC watchdog), `sdo` (its COB-IDs), `pdo` (the TxPDOs of each cycle).
+    """
+
+    # --- Object dictionary: LocalNode's stored values, else the EDS defaults -------------------
+    def _obj(self, index: int, sub: int) -> ODVariable:
+        obj = self.od[index]
+        if isinstance(obj, ODVariable):
+            if sub != 0:
+                raise SdoAbortedError(vm.ABORT_NO_SUBINDEX)
+            return obj
+        if sub not in obj.subindices:
+            raise SdoAbortedError(vm.ABORT_NO_SUBINDEX)
+        return obj.subindices[sub]
+
+    def _stored(self, index: int, sub: int = 0) -> Any:
+        obj = self._obj(index, sub)
+        raw = self.local.data_store.get(index, {}).get(sub)
+        if raw is None:
+            return obj.value if obj.value is not None else obj.default
+        return obj.decode_raw(raw)
+
+    def _store(self, index: int, sub: int, value: Any) -> None:
+        obj = self._obj(index, sub)
+        self.local.data_store.setdefault(index, {})[sub] = obj.encode_raw(value)
 
     def _power_on_state(self) -> None:
         """Application state after power-on or NMT reset node."""
@@ -141,14 +166,8 @@ class AecDrive:
         self.loadsav_busy: tuple[int, float] | None = None
         self.loadsav_last = 0
         self.reepsts = 0
-        self.last_emcy_at = -1e9
-        self.emcy_queue: list[bytes] = []
-        self.guard_toggle = 0
-        self.guard_seen: float | None = None
-        self.consumer_seen: dict[int, float] = {}
-        self.sdo_rx_cob = 0x600 + self.id
-        self.sdo_tx_cob = 0x580 + self.id
-        self._sync_watch(None)
+        self.nmt.power_on()
+        self.sdo.power_on()
         self.cia.force(SOD)               # transition 1 (automatic)
 
     @property
@@ -161,8 +180,9 @@ class AecDrive:
     def _hz_s(self, rps2x10: int) -> float:
         return vm.hz_s_from_rps2x10(rps2x10, self.steps_per_rev)
 
-    def _on_read(self, index: int, subindex: int, od: ODVariable) -> Any:
-        self._check_sub(subindex, od)
+    def _on_read_device(self, index: int, subindex: int, od: ODVariable) -> Any:
+        """The value of a DSP-402/AEC object the drive keeps (after SdoServer's checks); None:
+        the stored one."""
         if 0x2000 <= index <= 0x5FFF and subindex != vm.AEC_SUB:
             return None                      # sub 0 of an AEC register: the number of axes
         if index == vm.STATUSWORD:
@@ -227,7 +247,7 @@ class AecDrive:
         if index == vm.RROTSW:
             return self.id % 100
         if index == vm.RCANSTS:
-            red = 0b0101 if self.sync_error else 0b0100 if self.comm_error else 0
+            red = 0b0101 if self.nmt.sync_error else 0b0100 if self.comm_error else 0
             green = {NMT_PRE_OPERATIONAL: 0b0001, NMT_STOPPED: 0b0010,
                      NMT_OPERATIONAL: 0b0101}.get(self.nmt_state, 0)
             return red | green << 4
@@ -253,7 +273,7 @@ class AecDrive:
         """A drive alarm (Ralarm32 bits): EMCY 0x5400, fault reaction, FAULT."""
         self.alarm_causes |= bits
         self.alarms |= bits
-        self.emcy(vm.EMCY_POWER_STAGE, struct.pack('<I', self.alarms))
+        self.nmt.emcy(vm.EMCY_POWER_STAGE, struct.pack('<I', self.alarms))
         self._enter_fault()
 
     def _enter_fault(self) -> None:
@@ -286,7 +306,7 @@ class AecDrive:
             return
         self.alarms = 0
         self.cia.fault_reset()
-        self.emcy(vm.EMCY_NO_ERROR)
+        self.nmt.emcy(vm.EMCY_NO_ERROR)
         logger.info('%s: fault reset -> SWITCH ON DISABLED', self.name)
 
     def statusword(self) -> int:
@@ -365,7 +385,7 @@ class AecDrive:
         if self.state == OE:
             self._run_mode(cw, prev)
         self._settle(now)
-        self._tpdo_check(now)
+        self.pdo.tpdo_check(now)
 
     @property
     def state(self) -> str:
@@ -614,7 +634,7 @@ class AecDrive:
         simulator treats it as the drive alarm it calls it ("Allarme interpolazione"): the
         fault reaction of Ralarmreact 0x471E, then FAULT."""
         logger.info('%s: interpolation: %s', self.name, why)
-        self.emcy(code, vm.IP_EMCY_DATA)
+        self.nmt.emcy(code, vm.IP_EMCY_DATA)
         self._enter_fault()
 
     def _start_homing(self) -> None:
@@ -667,7 +687,7 @@ class AecDrive:
         self.rhsts = rhsts
         self.alarms |= 1 << 13                # Ralarm bit 13 "Homing Error"
         logger.info('%s: homing error: %s', self.name, why)
-        self.emcy(vm.EMCY_HOME_ERROR, bytes([rhsts & 0xFF]))
+        self.nmt.emcy(vm.EMCY_HOME_ERROR, bytes([rhsts & 0xFF]))
         if self.cfg.homing_error_faults:
             self._enter_fault()
 
@@ -729,8 +749,8 @@ class AecDrive:
         if code == vm.RLOADSAV_RESTART[1] and self.loadsav_last == vm.RLOADSAV_RESTART[0]:
             logger.info('%s: Rloadsav 142-143: restart', self.name)
             self._power_on_state()
-            self._reset_communication()
-            self.boot(self.sim.reboot_delay_s)
+            self.nmt.reset_communication()
+            self.nmt.boot(self.sim.reboot_delay_s)
             return
         self.loadsav_last = code
         if code == vm.RLOADSAV_SAVE_REGISTERS:
@@ -755,7 +775,7 @@ class AecDrive:
         self.loadsav_busy = None
         if self.nvram_fault:
             self.reepsts = 1 << 3                # "Errore in scrittura registri"
-            self.emcy(vm.EMCY_NVRAM, struct.pack('<H', self.reepsts))
+            self.nmt.emcy(vm.EMCY_NVRAM, struct.pack('<H', self.reepsts))
             return
         self.eeprom = {f'0x{index:04X}': self._stored(index, vm.AEC_SUB)
                        for index in SAVED_REGISTERS}

@@ -1,4 +1,4 @@
-"""Vector Step simulator, PDO engine: a mixin of VectorStepNode.
+"""Vector Step simulator, PDO engine: a part of VectorStepNode.
 
 The master's (re)mapping is honoured after every SDO write; TxPDOs on change, on their event timer
 (re-armed at every event), spaced by the inhibit time, on SYNC (types 0..240) or on request
@@ -12,12 +12,15 @@ import dataclasses
 import functools
 import logging
 import time
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 from canopen.sdo.exceptions import SdoAbortedError
 from stepper_drivers.vendors import vector_step_map as vm
 
 from .vector_step_nmt import NMT_INITIALISING, NMT_OPERATIONAL
+
+if TYPE_CHECKING:
+    from .vector_step_sim import VectorStepNode
 
 logger = logging.getLogger(__name__)
 
@@ -54,66 +57,102 @@ class Pdo:
 
 
 class PdoEngine:
-    """PDOs of one node (state: VectorStepNode)."""
+    """The PDOs of one node.
 
-    def _load_pdos(self) -> None:
+    `node` is the VectorStepNode: its object dictionary (`_stored`, `local`), its link to the bus
+    (`sim`, `send`, `subscribe`, `link_cut`, `nmt_state`), the SYNC watchdog (`nmt`) and the
+    drive application the PDOs carry (`process`, `ip_on_sync`, EMCY through `nmt`).
+    """
+
+    def __init__(self, node: VectorStepNode):
+        self.node = node
+        self.rx: list[Pdo] = []
+        self.tx: list[Pdo] = []
+
+    def load(self) -> None:
+        """(Re)read the communication and mapping parameters (0x1400.., 0x1600.., 0x1800..,
+        0x1A00..) and subscribe the valid PDOs."""
+        node = self.node
         for pdo in self.rx + self.tx:
             if pdo.handler is not None:
-                self._unsubscribe(pdo.cob_id, pdo.handler)
+                node.unsubscribe(pdo.cob_id, pdo.handler)
         self.rx, self.tx = [], []
         for n in range(4):
             for direction, comm, mapping, out in (
                     ('rx', vm.RPDO_COMMUNICATION, vm.RPDO_MAPPING, self.rx),
                     ('tx', vm.TPDO_COMMUNICATION, vm.TPDO_MAPPING, self.tx)):
-                cob = self._stored(comm + n, 1)
-                count = self._stored(mapping + n, 0)
+                cob = node._stored(comm + n, 1)
+                count = node._stored(mapping + n, 0)
                 pdo = Pdo(n + 1, direction, cob_id=cob & 0x7FF,
                           valid=not cob & vm.PDO_INVALID and count > 0,
                           rtr_allowed=not cob & vm.PDO_RTR_NOT_ALLOWED,
-                          trans_type=self._stored(comm + n, 2),
-                          entries=tuple(vm.split_mapping_entry(self._stored(mapping + n, k))
+                          trans_type=node._stored(comm + n, 2),
+                          entries=tuple(vm.split_mapping_entry(node._stored(mapping + n, k))
                                         for k in range(1, count + 1)))
                 if direction == 'tx':
-                    pdo.inhibit_100us = self._stored(comm + n, 3)
-                    pdo.event_timer_ms = self._stored(comm + n, 5)
+                    pdo.inhibit_100us = node._stored(comm + n, 3)
+                    pdo.event_timer_ms = node._stored(comm + n, 5)
                 if pdo.valid:
                     handler = functools.partial(self._on_rpdo if direction == 'rx'
                                                 else self._on_tpdo_request, pdo)
                     pdo.handler = handler
-                    self._subscribe(pdo.cob_id, handler)
+                    node.subscribe(pdo.cob_id, handler)
                 out.append(pdo)
+
+    def deadlines(self) -> list[float]:
+        """When an event-driven TxPDO (254/255) is due: a change after its inhibit time, its
+        event timer."""
+        if self.node.nmt_state != NMT_OPERATIONAL:
+            return []
+        times = []
+        for pdo in self.tx:
+            if pdo.valid and pdo.trans_type >= 0xFE:
+                if pdo.due is not None:
+                    times.append(pdo.due)
+                timer_due = pdo.timer_due()
+                if timer_due is not None:
+                    times.append(timer_due)
+        return times
+
+    def enter_operational(self) -> None:
+        """The current values of the event-driven TxPDOs, once on entering OPERATIONAL."""
+        for pdo in self.tx:
+            if pdo.valid and pdo.trans_type >= 0xFE:
+                self._send_tpdo(pdo, time.monotonic())
 
     def _encode(self, pdo: Pdo) -> bytes:
         data = b''
         for index, sub, bits in pdo.entries:
-            data += self.local.get_data(index, sub)[:bits // 8]
+            data += self.node.local.get_data(index, sub)[:bits // 8]
         return data
 
     def _send_tpdo(self, pdo: Pdo, now: float, data: bytes | None = None) -> None:
         data = self._encode(pdo) if data is None else data
         pdo.last_data, pdo.last_sent, pdo.due = data, now, None
-        self._send(pdo.cob_id, data)
+        self.node.send(pdo.cob_id, data)
 
     def _on_tpdo_request(self, pdo: Pdo, can_id: int, data: bytes, timestamp: float) -> None:
         """RTR for a TxPDO (socketcand carries it as a 0-byte data frame)."""
         if len(data) != 0:
             return
-        with self.sim.lock:
-            if self.link_cut or self.nmt_state != NMT_OPERATIONAL or not pdo.rtr_allowed:
+        node = self.node
+        with node.sim.lock:
+            if node.link_cut or node.nmt_state != NMT_OPERATIONAL or not pdo.rtr_allowed:
                 return
-            self.process()
+            node.process()
             self._send_tpdo(pdo, time.monotonic(),
                             pdo.sampled if pdo.trans_type == 252 and pdo.sampled else None)
 
     def _on_rpdo(self, pdo: Pdo, can_id: int, data: bytes, timestamp: float) -> None:
-        with self.sim.lock:
-            if self.link_cut or self.nmt_state != NMT_OPERATIONAL:
+        node = self.node
+        with node.sim.lock:
+            if node.link_cut or node.nmt_state != NMT_OPERATIONAL:
                 return
             if len(data) > pdo.length:
-                self.emcy(vm.EMCY_PDO_TOO_LONG, comm=True)     # the manual's assignment
+                node.nmt.emcy(vm.EMCY_PDO_TOO_LONG, comm=True)     # the manual's assignment
                 return
             if len(data) < pdo.length:
-                self.emcy(vm.EMCY_PDO_TOO_SHORT, comm=True)
+                node.nmt.emcy(vm.EMCY_PDO_TOO_SHORT, comm=True)
                 return
             if pdo.trans_type <= 240:
                 pdo.pending = bytes(data)                      # applied at the next SYNC
@@ -121,34 +160,36 @@ class PdoEngine:
             self._apply_rpdo(pdo, bytes(data))
 
     def _apply_rpdo(self, pdo: Pdo, data: bytes) -> None:
+        node = self.node
         offset = 0
         for index, sub, bits in pdo.entries:
             chunk = data[offset:offset + bits // 8]
             offset += bits // 8
             try:
-                self.local.set_data(index, sub, chunk)
+                node.local.set_data(index, sub, chunk)
             except SdoAbortedError as exc:
-                logger.info('%s: RxPDO%d 0x%04X:%02X = %s refused: %s', self.name, pdo.number,
+                logger.info('%s: RxPDO%d 0x%04X:%02X = %s refused: %s', node.name, pdo.number,
                             index, sub, chunk.hex(), vm.abort_text(exc.code))
-        self.sim.run_after()
-        self.process()
-        self.sim.wake()
+        node.sim.run_after()
+        node.process()
+        node.sim.wake()
 
     def on_sync(self, now: float, stamp_s: float | None = None) -> None:
         """A SYNC received at `now`; `stamp_s` is the frame's receive stamp (interpolation
         timing; any clock, differences only), `now` when there is none."""
-        if self.link_cut or self.nmt_state == NMT_INITIALISING:
+        node = self.node
+        if node.link_cut or node.nmt_state == NMT_INITIALISING:
             return
-        if self._sync_timeout_s():
-            self._sync_watch(now)
-        if self.nmt_state != NMT_OPERATIONAL:
+        if node.nmt.sync_timeout_s():
+            node.nmt.sync_watch(now)
+        if node.nmt_state != NMT_OPERATIONAL:
             return
         for pdo in self.rx:
             if pdo.valid and pdo.pending is not None:
                 data, pdo.pending = pdo.pending, None
                 self._apply_rpdo(pdo, data)
-        self.process()
-        self.ip_on_sync(stamp_s or now)
+        node.process()
+        node.ip_on_sync(stamp_s or now)
         for pdo in self.tx:
             if not pdo.valid:
                 continue
@@ -164,9 +205,9 @@ class PdoEngine:
                     pdo.sync_count = 0
                     self._send_tpdo(pdo, now)
 
-    def _tpdo_check(self, now: float) -> None:
+    def tpdo_check(self, now: float) -> None:
         """Event-driven TxPDOs (254/255): on change, spaced by the inhibit time; event timer."""
-        if self.link_cut or self.nmt_state != NMT_OPERATIONAL:
+        if self.node.link_cut or self.node.nmt_state != NMT_OPERATIONAL:
             return
         for pdo in self.tx:
             if not pdo.valid or pdo.trans_type < 0xFE:
@@ -180,7 +221,7 @@ class PdoEngine:
                     pdo.due = pdo.last_sent + inhibit_s
                 continue
             # A change that went back within the inhibit time leaves nothing to send: a `due`
-            # kept in the past made next_deadline() return it and the cycle loop spin.
+            # kept in the past would make deadlines() return it and the cycle loop spin.
             pdo.due = None
             due = pdo.timer_due()
             if due is not None and now >= due:

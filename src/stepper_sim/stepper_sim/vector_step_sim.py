@@ -30,10 +30,12 @@ The simulator ignores S-curve profiles (0x6086): moves are trapezoidal. `main()`
 the common ROS simulator node (sim_node.run_sim), on the EDS installed with stepper_drivers
 (`installed_eds()`). Nothing here imports the driver's state logic.
 
-Modules, along CANopen's own seams: vector_step_nmt (NMT, error control, EMCY, SYNC watchdog),
-vector_step_sdo (SDO server checks), vector_step_pdo (PDO engine), vector_step_drive (the AEC
-drive on the shared device-side cia402_device); this one joins them into VectorStepNode (timers,
-fault injection) and runs the bus (VectorStepSim) and the ROS executable.
+Modules, along CANopen's own seams: vector_step_nmt (NmtSlave: NMT, error control, EMCY, SYNC
+watchdog), vector_step_sdo (SdoServer: SDO server checks), vector_step_pdo (PdoEngine: PDOs),
+vector_step_drive (VectorStepDriveSim: the AEC drive on the shared device-side cia402_device).
+Here VectorStepNode is the drive (its base class) holding the three CANopen parts as objects
+(`node.nmt`, `node.sdo`, `node.pdo`, each given the node), with the link to the bus, the timers
+and fault injection; VectorStepSim runs the bus, and `main()` the ROS executable.
 """
 
 from __future__ import annotations
@@ -52,10 +54,9 @@ import canopen
 from stepper_drivers.vendors import vector_step_map as vm
 
 from .axis import HOME, LIMIT_NEG, LIMIT_POS, SimAxis
-from .faults import garble_one
-from .vector_step_drive import AecDrive, FRA, OE, QSA, RTSO, SO, SOD
-from .vector_step_nmt import NMT_INITIALISING, NMT_OPERATIONAL, SYNC_CONFIRM_S, NmtSlave
-from .vector_step_pdo import PdoEngine, Pdo
+from .vector_step_drive import FRA, OE, QSA, RTSO, SO, SOD, VectorStepDriveSim
+from .vector_step_nmt import NMT_INITIALISING, SYNC_CONFIRM_S, NmtSlave
+from .vector_step_pdo import PdoEngine
 from .vector_step_sdo import SdoServer
 
 __all__ = ['NodeConfig', 'SYNC_CONFIRM_S', 'VectorStepNode', 'VectorStepSim', 'build', 'main']
@@ -104,8 +105,10 @@ class NodeConfig:
                                  'UNSIGNED32 (0x1018)')
 
 
-class VectorStepNode(NmtSlave, SdoServer, PdoEngine, AecDrive):
-    """One simulated Vector Step on the bus: the CANopen layers and the AEC drive together."""
+class VectorStepNode(VectorStepDriveSim):
+    """One simulated Vector Step on the bus: the AEC drive application (the base class) with
+    its CANopen parts `nmt`, `sdo` and `pdo` (as canopen's LocalNode holds its own), the node's
+    link to the bus (subscriptions, `send`, `link_cut`) and its fault injection."""
 
     def __init__(self, sim: 'VectorStepSim', cfg: NodeConfig, eds: str):
         self.sim = sim
@@ -116,13 +119,15 @@ class VectorStepNode(NmtSlave, SdoServer, PdoEngine, AecDrive):
         for index in cfg.missing_objects:         # another firmware: SDO abort 0x06020000
             del self.od[index]
         self.local = canopen.LocalNode(self.id, self.od)
-        # LocalNode's NmtSlave runs the heartbeat as a python-can periodic task and never boots:
-        # this class does NMT itself.
-        self.local._write_callbacks.remove(self.local.nmt.on_write)
-        self.local.add_read_callback(self._on_read)
-        self.local.add_write_callback(self._on_write)
         self.garble_sdo = False          # corrupt_reply: one character of each SDO answer
-        self.local.sdo.send_response = self._send_sdo_response
+        self.nmt = NmtSlave(self)
+        self.sdo = SdoServer(self)
+        self.pdo = PdoEngine(self)
+        # LocalNode's NmtSlave runs the heartbeat as a python-can periodic task and never boots:
+        # self.nmt does NMT instead.
+        self.local._write_callbacks.remove(self.local.nmt.on_write)
+        self.local.add_read_callback(self.sdo.on_read)
+        self.local.add_write_callback(self.sdo.on_write)
         self.axis = SimAxis(limit_neg_steps=cfg.limit_neg_steps,
                             limit_pos_steps=cfg.limit_pos_steps,
                             home_switch_steps=cfg.home_switch_steps,
@@ -135,52 +140,76 @@ class VectorStepNode(NmtSlave, SdoServer, PdoEngine, AecDrive):
         self.nvram_fault = False
         self.power_stage_blocked = cfg.power_stage_blocked
         self.alarm_causes = 0            # Ralarm32 bits whose cause is present
-        self.sync_at: float | None = None   # last SYNC (or 0x1006 write) the watchdog counts from
         self._subscriptions: list[tuple[int, Callable]] = []
-        self.rx: list[Pdo] = []
-        self.tx: list[Pdo] = []
         self._load_eeprom()
         self._power_on_state()
-        self.nmt_state = NMT_INITIALISING
-        self.boot_at: float | None = None
-        self.heartbeat_due: float | None = None
 
+    @property
+    def nmt_state(self) -> int:
+        return self.nmt.state
+
+    @property
+    def sync_at(self) -> float | None:
+        """The last SYNC (or 0x1006 write) the SYNC watchdog counts from."""
+        return self.nmt.sync_at
+
+    # The link to the bus ----------------------------------------------------------------------
+    def attach(self) -> None:
+        network = self.sim.network
+        self.local.network = network
+        self.local.sdo.network = network
+        self.subscribe(0x000, self.nmt.on_nmt)
+        self.subscribe(0x700 + self.id, self.nmt.on_guard)
+
+    def detach(self) -> None:
+        for cob, handler in self._subscriptions:
+            try:
+                self.sim.network.unsubscribe(cob, handler)
+            except (KeyError, ValueError):
+                pass
+        self._subscriptions.clear()
+
+    def subscribe(self, cob: int, handler: Callable) -> None:
+        self.sim.network.subscribe(cob, handler)
+        self._subscriptions.append((cob, handler))
+
+    def unsubscribe(self, cob: int, handler: Callable) -> None:
+        if (cob, handler) in self._subscriptions:
+            self._subscriptions.remove((cob, handler))
+            try:
+                self.sim.network.unsubscribe(cob, handler)
+            except (KeyError, ValueError):
+                pass
+
+    def unsubscribe_all(self, handler: Callable) -> None:
+        """`handler` off every COB-ID it was subscribed to."""
+        for cob, subscribed in [s for s in self._subscriptions if s[1] == handler]:
+            self.unsubscribe(cob, subscribed)
+
+    def send(self, cob: int, data: bytes) -> None:
+        if self.link_cut:
+            return
+        self.sim.send(cob, data)
+
+    # Timers -----------------------------------------------------------------------------------
     def next_deadline(self, now: float) -> float:
+        nmt = self.nmt
         times = [math.inf]
-        if self.boot_at is not None:
-            times.append(self.boot_at)
-        if self.nmt_state == NMT_INITIALISING:
+        if nmt.boot_at is not None:
+            times.append(nmt.boot_at)
+        if nmt.state == NMT_INITIALISING:
             return min(times)
-        sync = self._sync_deadline()        # a cut cable loses the SYNC too
+        sync = nmt.sync_deadline()          # a cut cable loses the SYNC too
         if sync is not None:
             times.append(sync)
         if self.active:
             times.append(now + self.sim.cycle_s)
         if self.link_cut:
             return min(times)
-        period_ms = self._stored(vm.PRODUCER_HEARTBEAT_TIME)
-        if period_ms and self.heartbeat_due is not None:
-            times.append(self.heartbeat_due)
         if self.loadsav_busy:
             times.append(self.loadsav_busy[1])
-        if self.emcy_queue:
-            inhibit_s = self._stored(vm.INHIBIT_TIME_EMCY) * 1e-4
-            times.append(self.last_emcy_at + inhibit_s)
-        if self.nmt_state == NMT_OPERATIONAL:
-            for pdo in self.tx:
-                if pdo.valid and pdo.trans_type >= 0xFE:
-                    if pdo.due is not None:
-                        times.append(pdo.due)
-                    timer_due = pdo.timer_due()
-                    if timer_due is not None:
-                        times.append(timer_due)
-        life = self._life_time_s()
-        if life and self.guard_seen is not None:
-            times.append(self.guard_seen + life)
-        for node, timeout in getattr(self, 'consumers', {}).items():
-            seen = self.consumer_seen.get(node)
-            if seen is not None:
-                times.append(seen + timeout)
+        times += nmt.deadlines()            # heartbeat, EMCY inhibit, life and consumer times
+        times += self.pdo.deadlines()
         return min(times)
 
     @property
@@ -189,38 +218,19 @@ class VectorStepNode(NmtSlave, SdoServer, PdoEngine, AecDrive):
                 or self.state == FRA)
 
     def tick(self, now: float) -> None:
-        if self.boot_at is not None and now >= self.boot_at:
-            self._finish_boot(now)
-        if self.nmt_state == NMT_INITIALISING:
+        nmt = self.nmt
+        if nmt.boot_at is not None and now >= nmt.boot_at:
+            nmt.finish_boot(now)
+        if nmt.state == NMT_INITIALISING:
             return
-        self._check_sync(now)
+        nmt.check_sync(now)
         if self.link_cut:
             self.process()                  # the alarm's stop ramp runs without the bus
             return
-        period_ms = self._stored(vm.PRODUCER_HEARTBEAT_TIME)
-        if period_ms and self.heartbeat_due is not None and now >= self.heartbeat_due:
-            self._send(0x700 + self.id, bytes([self.nmt_state]))
-            self.heartbeat_due += period_ms / 1000.0
-            if self.heartbeat_due <= now:          # late (or just switched on): re-phase
-                self.heartbeat_due = now + period_ms / 1000.0
+        nmt.heartbeat(now)
         if self.loadsav_busy and now >= self.loadsav_busy[1]:
             self._finish_save()
-        if self.emcy_queue and now >= self.last_emcy_at + \
-                self._stored(vm.INHIBIT_TIME_EMCY) * 1e-4:
-            cob = self._stored(vm.COB_ID_EMCY) & 0x7FF
-            self.last_emcy_at = now
-            self._send(cob, self.emcy_queue.pop(0))
-        life = self._life_time_s()
-        if life and self.guard_seen is not None and now > self.guard_seen + life:
-            self.guard_seen = None               # one event per loss
-            logger.info('%s: life guarding: no guard request within %.3f s', self.name, life)
-            self.emcy(vm.EMCY_ERROR_CONTROL, comm=True)
-        for node, timeout in getattr(self, 'consumers', {}).items():
-            seen = self.consumer_seen.get(node)
-            if seen is not None and now > seen + timeout:
-                del self.consumer_seen[node]
-                logger.info('%s: heartbeat of node %d lost', self.name, node)
-                self.emcy(vm.EMCY_ERROR_CONTROL, bytes([node]), comm=True)
+        nmt.error_control(now)
         self.process()
 
     def inject(self, kind: str, code: int, value: float) -> str:
@@ -246,7 +256,7 @@ class VectorStepNode(NmtSlave, SdoServer, PdoEngine, AecDrive):
             self.warnings = code
             return f'Rwarning = 0x{code:04X}'
         if kind == 'emcy':
-            self.emcy(code, comm=0x8100 <= code <= 0x82FF)
+            self.nmt.emcy(code, comm=0x8100 <= code <= 0x82FF)
             return f'EMCY 0x{code:04X} sent'
         if kind == 'nvram_fault':
             self.nvram_fault = True
@@ -264,22 +274,16 @@ class VectorStepNode(NmtSlave, SdoServer, PdoEngine, AecDrive):
         if kind == 'link_ok':
             self.link_cut = self.garble_sdo = False
             if self._stored(vm.PRODUCER_HEARTBEAT_TIME):
-                self.heartbeat_due = time.monotonic()
+                self.nmt.heartbeat_due = time.monotonic()
             return 'node answers again'
         if kind == 'reboot':
             self._power_on_state()
-            self._reset_communication()
-            self.boot(self.sim.reboot_delay_s)
+            self.nmt.reset_communication()
+            self.nmt.boot(self.sim.reboot_delay_s)
             return 'power cycle: boot-up follows'
         raise ValueError(f'unknown fault kind {kind!r}; kinds: drive_fault, clear_fault, '
                          'power_stage_blocked, power_stage_ok, warning, emcy, nvram_fault, '
                          'nvram_ok, cut, no_reply, corrupt_reply, link_ok, reboot')
-
-    def _send_sdo_response(self, response: bytes) -> None:
-        """canopen's SdoServer.send_response, with the corrupt_reply fault."""
-        if self.garble_sdo:
-            response = garble_one(bytes(response))
-        self.local.sdo.network.send_message(self.local.sdo.tx_cobid, response)
 
 
 # TxPDO2..4 (CiA 301 pre-defined connection set: 0x280, 0x380, 0x480 + node-ID)
@@ -337,7 +341,7 @@ class VectorStepSim:
         with self.lock:
             for node in self.nodes.values():
                 node.attach()
-                node.boot(self.reboot_delay_s)
+                node.nmt.boot(self.reboot_delay_s)
         self._thread = threading.Thread(target=self._run, name='vector-step-sim', daemon=True)
         self._thread.start()
         ids = ', '.join(str(n.id) for n in self.nodes.values())
@@ -428,7 +432,7 @@ class VectorStepSim:
             now = time.monotonic()
             for node in self.nodes.values():
                 if node._stored(vm.COB_ID_SYNC) & 0x7FF == can_id:
-                    node.on_sync(now, timestamp)
+                    node.pdo.on_sync(now, timestamp)
 
     def _run(self) -> None:
         while not self._stopping:

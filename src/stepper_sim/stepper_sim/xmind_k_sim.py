@@ -19,10 +19,8 @@ The device model shares the frame codec and the tables with the driver
 (`stepper_drivers.protocol.xmind_k`), never its state logic. Readings of the manual's open points
 are parameters (docs/xmind_k.md lists them).
 
-Why one file of about 800 lines: XmindKDriveSim's EEPROM, program engine, motion and zero search
-share the cells, the busy flag and the axis; the line needs only receive(), update() and address.
-A split would follow xplus_mt_device.py: XmindKDriveSim (about 530 lines) into xmind_k_device.py;
-XmindKLine, the backend and build() stay here.
+One file: XmindKDriveSim's EEPROM, program engine, motion and zero search share the cells, the
+busy flag and the axis; the line needs only receive(), update() and address.
 """
 
 from __future__ import annotations

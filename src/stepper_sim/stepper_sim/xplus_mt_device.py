@@ -34,7 +34,7 @@ from .xplus_mt_faults import HV_STABLE_S, LOST_REPLY_HOLD_S, XplusMtFaults
 from .xplus_mt_modes import XplusMtModes
 
 # LOST_REPLY_HOLD_S: xplus_mt_sim holds a lost reply this long
-__all__ = ['LOST_REPLY_HOLD_S', 'XplusMtDevice', 'XplusMtDriveConfig']
+__all__ = ['LOST_REPLY_HOLD_S', 'XplusMtDriveConfig', 'XplusMtDriveSim']
 
 logger = logging.getLogger(__name__)
 
@@ -107,7 +107,7 @@ def _none_if_nan(value: float | None) -> float | None:
     return None if value is None or math.isnan(value) else float(value)
 
 
-class XplusMtDevice(XplusMtModes, XplusMtFaults):
+class XplusMtDriveSim(XplusMtModes, XplusMtFaults):
     """One X-PLUS MT: register image, state machine, modes, faults, over a SimAxis.
 
     Thread-safe (one lock): the Modbus server thread and the ROS thread both call it.

@@ -1,10 +1,10 @@
-"""One simulated R.T.A. X-PLUS MT, its faults: a mixin of `XplusMtDevice`.
+"""One simulated R.T.A. X-PLUS MT, its faults: a mixin of `XplusMtDriveSim`.
 
 Faults (transitions 13-14: current off, 1006/1007, §12), the alarm log 1220-1239 (A23: newest in
 entry 0), fault reset only once the cause is gone (transition 15), the following-error reaction
 of 1085 (§13 "Register 1085"), and what the simulator injects from outside: drive faults, HV
 off/on, a lost write reply, forced inputs. The register image, lock and CiA 402 glue it works
-on are `xplus_mt_device.XplusMtDevice`'s.
+on are `xplus_mt_device.XplusMtDriveSim`'s.
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ INPUT_NAMES = ('home', 'limit_neg', 'limit_pos', 'I0', 'I1', 'I2', 'I3')
 
 
 class XplusMtFaults:
-    """The faults of one X-PLUS MT (state and lock: XplusMtDevice)."""
+    """The faults of one X-PLUS MT (state and lock: XplusMtDriveSim)."""
 
     # ------------------------------------------------------------------ faults
     def _fault(self, code: int, now: float, persistent: bool) -> None:

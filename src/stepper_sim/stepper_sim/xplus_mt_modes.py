@@ -1,11 +1,11 @@
-"""One simulated R.T.A. X-PLUS MT, its operating modes: a mixin of `XplusMtDevice`.
+"""One simulated R.T.A. X-PLUS MT, its operating modes: a mixin of `XplusMtDriveSim`.
 
 What the drive does in Operation Enabled, by mode of operation (1041): profile position with
 the set-point handshake, multi-set-point (change set immediately) and halt (§13 "Profile Position
 Mode", "Multi-Set-Point Mode"), profile velocity with the 1062-1065 speed windows (§13 "Profile
 Velocity Mode"), homing on the SimAxis (§13 "Homing Mode", T19, T26); the limit switches that
 stop a motion (§13 "Registers 1008-1009", 1088); and the statusword (1001) bits each mode shows.
-The register image, lock and CiA 402 glue it works on are `xplus_mt_device.XplusMtDevice`'s.
+The register image, lock and CiA 402 glue it works on are `xplus_mt_device.XplusMtDriveSim`'s.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ START_STOP_HZ = xm.START_STOP_MAX_HZ
 
 
 class XplusMtModes:
-    """The modes of one X-PLUS MT (state and lock: XplusMtDevice, which calls these with its
+    """The modes of one X-PLUS MT (state and lock: XplusMtDriveSim, which calls these with its
     lock held)."""
 
     # ------------------------------------------------------------------ modes

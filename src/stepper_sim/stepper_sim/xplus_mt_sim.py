@@ -22,7 +22,7 @@ chapters, "T13" its tables, "A<n>" the ambiguities of `shared/spec/xplus_mt.md` 
 Link faults go through a `FaultyTcpProxy` in front of the pymodbus server.
 
 This module is the Modbus TCP front (request decoding, exceptions, units, the server thread, the
-ROS executable); each drive behind it is an `xplus_mt_device.XplusMtDevice`, whose CiA 402 is the
+ROS executable); each drive behind it is an `xplus_mt_device.XplusMtDriveSim`, whose CiA 402 is the
 shared device-side `cia402_device`.
 
 Non-ROS API: `XplusMtSim(...).start()`, `.port`, `.drives[name]`, `.inject_fault()`, `.stop()`.
@@ -46,9 +46,9 @@ from pymodbus.simulator import DataType, SimData, SimDevice
 from stepper_drivers.vendors import xplus_mt_map as xm
 
 from .faults import LATE_REPLY, OK, FaultyTcpProxy, LinkFaults, garble_one
-from .xplus_mt_device import LOST_REPLY_HOLD_S, XplusMtDevice, XplusMtDriveConfig
+from .xplus_mt_device import LOST_REPLY_HOLD_S, XplusMtDriveSim, XplusMtDriveConfig
 
-__all__ = ['XplusMtDevice', 'XplusMtDriveConfig', 'XplusMtSim', 'build', 'main']
+__all__ = ['XplusMtDriveSim', 'XplusMtDriveConfig', 'XplusMtSim', 'build', 'main']
 
 logger = logging.getLogger(__name__)
 SHUTDOWN_STEP_S = 3.0    # each of the server thread's shutdown steps (the caller joins 10 s)
@@ -109,7 +109,7 @@ class XplusMtSim:
     """One Modbus TCP port (127.0.0.1) with one or more simulated X-PLUS MT drives.
 
     A `sim_node.SimBackend`. Start with start() (returns once listening; `.port` is then the
-    bound port), stop with stop(). `.drives[name]` is the XplusMtDevice (its `.axis`, exact
+    bound port), stop with stop(). `.drives[name]` is the XplusMtDriveSim (its `.axis`, exact
     `.true_position_steps`, `.statusword`, `.register(name)`).
     """
 
@@ -135,8 +135,8 @@ class XplusMtSim:
         self.reply_latency_s = reply_latency_s
         self.tick_s = tick_s
         self.link = LinkFaults(corrupt=garble_one)     # corrupt_reply: one character
-        self.drives: dict[str, XplusMtDevice] = {
-            d.name: XplusMtDevice(d, word_order=word_order, storage_dir=storage_dir,
+        self.drives: dict[str, XplusMtDriveSim] = {
+            d.name: XplusMtDriveSim(d, word_order=word_order, storage_dir=storage_dir,
                                   strict=strict, clock=clock) for d in drives}
         self._loop: asyncio.AbstractEventLoop | None = None
         self._thread: threading.Thread | None = None
@@ -213,7 +213,7 @@ class XplusMtSim:
             return False, f'unknown drive {drive!r}; drives: {", ".join(self.drives)}'
         return self.drives[drive].set_input(name, value, release)
 
-    def _drive(self, name: str) -> XplusMtDevice:
+    def _drive(self, name: str) -> XplusMtDriveSim:
         try:
             return self.drives[name]
         except KeyError:
@@ -299,7 +299,7 @@ class XplusMtSim:
         return SimData(address=REGISTER_BLOCK[0], count=REGISTER_BLOCK[1], values=0,
                        datatype=DataType.REGISTERS)
 
-    async def _action(self, dev: XplusMtDevice, function_code: int, start_address: int,
+    async def _action(self, dev: XplusMtDriveSim, function_code: int, start_address: int,
                       address: int, count: int, registers: list[int],
                       set_values: list[int] | list[bool] | None) -> ExcCodes | None:
         """pymodbus SimDevice hook: the device model answers every request (FC 03/04/06/16 only:

@@ -14,7 +14,7 @@ import pytest
 import serial
 from stepper_sim.harness import wait_for
 from stepper_drivers.vendors import rd4_map as rm
-from stepper_sim.rd4_sim import Rd4Options, Rd4Unit, RtuLine
+from stepper_sim.rd4_sim import Rd4Options, Rd4DriveSim, RtuLine
 
 
 def h(text: str) -> bytes:
@@ -58,7 +58,7 @@ def line(tmp_path):
     made = []
 
     def make(*units, **kwargs):
-        units = units or (Rd4Unit('axis1', 1), Rd4Unit('axis2', 2, 'T48'))
+        units = units or (Rd4DriveSim('axis1', 1), Rd4DriveSim('axis2', 2, 'T48'))
         ln = RtuLine(units, tmp_path / 'rd4.pty', **kwargs)
         ln.start()
         made.append(ln)
@@ -202,7 +202,7 @@ def test_holes_and_read_only_registers(line, client):
         assert ln.unit('axis1').get('OFFSET') == 0
     ln.stop()
     strict = Rd4Options(hole_policy='exception', ro_write_policy='exception')
-    ln = line(Rd4Unit('axis1', 1, options=strict))
+    ln = line(Rd4DriveSim('axis1', 1, options=strict))
     c = client(ln)
     assert c.ask(add_crc(h('01 03 00 19 00 02')), 5) == h('01 83 02 C0 F1')
     assert c.ask(add_crc(h('01 06 00 18 00 30')), 5) == h('01 86 02 C3 A1')
@@ -234,7 +234,7 @@ def test_out_of_range_write_is_accepted_and_raises_machine_data_not_valid(line, 
 
 def test_node_id_above_247_answers_as_247_and_baud_mismatch_is_silent(line, tmp_path):
     from stepper_drivers.protocol.modbus_rtu import add_crc
-    ln = line(Rd4Unit('far', 250))
+    ln = line(Rd4DriveSim('far', 250))
     c = Client(ln.link_path, 9600)
     try:
         reply = c.ask(add_crc(h('F7 04 00 0D 00 01')), 7)
@@ -312,7 +312,7 @@ def test_pymodbus_async_client_interoperates(line):
 @pytest.fixture
 def unit(tmp_path):
     clock = Clock()
-    u = Rd4Unit('axis1', 1, clock=clock, storage_path=tmp_path / 'axis1.json')
+    u = Rd4DriveSim('axis1', 1, clock=clock, storage_path=tmp_path / 'axis1.json')
     u.clock_ = clock
     return u
 
@@ -487,7 +487,7 @@ def test_preset_applies_on_bit_11_edge_by_default_or_on_write(unit, tmp_path):
     unit.control_word(rm.CW_READY | rm.CW_PERFORM_COUNTING_PRESET)
     assert unit.position == -500 and unit.limits == (-500 - 523263, -500 + 523263)
     assert unit.get('OFFSET') == 500                        # real position - preset
-    eager = Rd4Unit('b', 2, clock=Clock(), options=Rd4Options(preset_on_write=True))
+    eager = Rd4DriveSim('b', 2, clock=Clock(), options=Rd4Options(preset_on_write=True))
     eager.write(0x16, rm.split32(1234), 0x10)
     assert eager.position == 1234
 
@@ -502,7 +502,7 @@ def test_save_persists_and_load_defaults_does_not(unit, tmp_path):
     assert stored['values']['ACCELERATION'] == 2500 and stored['values']['PRESET'] == 100
     unit.control_word(rm.CW_READY | rm.CW_LOAD_DEFAULT_PARAMETERS)
     assert unit.get('ACCELERATION') == 1000
-    again = Rd4Unit('axis1', 1, clock=Clock(), storage_path=tmp_path / 'axis1.json')
+    again = Rd4DriveSim('axis1', 1, clock=Clock(), storage_path=tmp_path / 'axis1.json')
     assert again.get('ACCELERATION') == 2500 and again.get('OFFSET') == -100
     assert again.position == 100          # the absolute reference survives the power cycle
     assert again.alarms == rm.ALARM_EMERGENCY
