@@ -1,4 +1,4 @@
-"""DriveNode: the one ROS layer every vendor node shares (ros_interface.md): a thin adapter.
+"""DriveNode: the one ROS layer every vendor node shares (docs/interface.md): a thin adapter.
 
 Each bus has one owner thread (`supervisor.BusSupervisor`, no rclpy) that makes every call into
 the vendor code: polls, commands, reconnects, the velocity watchdog and shutdown. This module only
@@ -16,10 +16,9 @@ turns ROS into jobs and snapshots into ROS:
   /diagnostics when it is due: the executor has no timer and sleeps until a command comes.
 - process.py runs the node: signals, the executor thread, the order of shutdown.
 
-Why one file of about 820 lines: DriveNode is one rclpy Node; its interfaces, command checks,
-publishing and services share its handles, supervisors and callback groups. A split would go
-along the services and actions (`_await` .. `act_home`, about 220 lines) into a helper object like
-node_trajectory.TrajectoryInterface; the status/diagnostics publishing (~130 lines) could follow.
+One file: DriveNode is one rclpy Node; its interfaces, command checks, publishing and services
+share its handles, supervisors and callback groups (the trajectory interface is its own object,
+node_trajectory.TrajectoryInterface).
 """
 
 from __future__ import annotations
@@ -68,12 +67,10 @@ SHUTDOWN_STOP_TIMEOUT_S = 5.0
 JOB_TIMEOUT_S = 15.0
 
 
-# Command topics keep every sample (reliable, KEEP_ALL). With KEEP_LAST 10, four publishers
-# bursting 251 commands each, each ending with 0.0, left the axis running at the older command
-# in 4 of about 25 loaded runs of test_safety_ros: the node's callbacks saw 45-162 of the 1004
-# samples and none of the later 0.0s (Fast DDS's KEEP_LAST reader history fed by several writers;
-# cf. eProsima/Fast-DDS#708). Now every sample reaches the callback in each publisher's order;
-# the bus owner's queue drops stream commands that a newer one replaces before they are sent.
+# Command topics keep every sample (reliable, KEEP_ALL): a KEEP_LAST reader history fed by
+# several writers at once can drop a publisher's last samples (eProsima/Fast-DDS#708), and a
+# final 0.0 lost leaves an axis running. Every sample reaches the callback in each publisher's
+# order; the bus owner's queue drops stream commands that a newer one replaces before they go.
 COMMAND_QOS = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE)
 
 

@@ -171,7 +171,7 @@ def given_parameters(args: Sequence[str], node: Node) -> dict[str, Any]:
 
 @dataclasses.dataclass(frozen=True)
 class P:
-    """A parameter of the common contract (ros_interface.md)."""
+    """A parameter of the common contract (docs/interface.md)."""
 
     name: str
     default: Any

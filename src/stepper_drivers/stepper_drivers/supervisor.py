@@ -30,10 +30,9 @@ An exception that escapes the owner loop (a bug, not a drive's error: those are 
 polls' results) stops every drive of the bus, closes it, marks the drives DISCONNECTED with the
 error and calls `on_failure`: the node then ends, since nobody polls or watches these drives.
 
-Why one file of about 750 lines: it is one owner loop; scheduling (queues, URGENT, watchdog),
-link state (connect, back-off, loss) and shutdown change the same slots, queues and futures under
-`_cv`, and the order rules above span all three. A split would go along the link lifecycle
-(`_drive_lost` .. `refuse_drive`, about 100 lines), calling back `_cut_short`/`_resolve_waiters`.
+One file: it is one owner loop; scheduling (queues, URGENT, watchdog), link state (connect,
+back-off, loss) and shutdown change the same slots, queues and futures under `_cv`, and the
+order rules above span all three.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Drives on the ROS graph: find them by their DriveStatus topics, reach their interfaces.
 
-A drive is known by the base name of its interfaces, `/<node>/<drive>` (ros_interface.md: status,
+A drive is known by the base name of its interfaces, `/<node>/<drive>` (docs/interface.md: status,
 services and actions live under `~/<drive>/`). Users may name it in full, by its tail
 (`xplus_mt_node/axis1`, `axis1`) or by its joint name, as long as that names one drive.
 """

@@ -19,10 +19,8 @@ refuse what the drive would refuse: `FrameSyntaxError` and `RangeError` are what
 The canonical wire form has no '.' or ',' before the terminator: the manual's examples print one
 but its own character counts in §3 leave it out (see docs/xmind_k.md). Receivers here accept one.
 
-Why one file of about 670 lines: the codec range-checks WN/QM instructions and WS/QS presets with
-the §4.1 instruction table and the §4.2.2/§6 tables, one contract shared by driver and simulator.
-A split would go along the §4.1 instruction table (FieldKind .. instruction_type, about 220
-lines) into protocol/xmind_k_instructions.py, which this codec would import.
+One file: the codec range-checks WN/QM instructions and WS/QS presets with the §4.1 instruction
+table and the §4.2.2/§6 tables, one contract shared by driver and simulator.
 """
 
 from __future__ import annotations

@@ -18,10 +18,8 @@ How the common contract maps onto the drive (docs/xmind_k.md has the full table)
 - every operation of more than one string is step-wise (drive.py): 0.0 is yielded between
   strings, waits are yields; `stop()` is one string. A 9600 baud string takes 20-50 ms.
 
-Why one file of about 990 lines: the drive is silent while it runs a program (§3), so read_state,
-stop, a velocity change and homing all work on the same running Job, its Estimate and the epoch.
-A split would go along the estimation (Estimate and Job, about 90 lines, no I/O) into
-vendors/xmind_k_estimate.py; the rest shares that state and stays.
+One file: the drive is silent while it runs a program (§3), so read_state, stop, a velocity
+change and homing all work on the same running Job, its Estimate and the epoch.
 """
 
 from __future__ import annotations
