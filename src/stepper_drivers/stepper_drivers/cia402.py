@@ -91,6 +91,8 @@ SW_MASK: dict[State, tuple[int, int]] = {
 AUTOMATIC_STATES = (State.NOT_READY_TO_SWITCH_ON, State.FAULT_REACTION_ACTIVE)
 COMMANDABLE_STATES = (State.SWITCH_ON_DISABLED, State.READY_TO_SWITCH_ON, State.SWITCHED_ON,
                       State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE)
+# The states of a fault: the drive goes on to FAULT by itself, and leaves it by a fault reset only.
+FAULT_STATES = (State.FAULT, State.FAULT_REACTION_ACTIVE)
 
 # Host-commanded transitions: (from, to) -> controlword. Numbers are CiA 402 / the manual's §12.
 TRANSITIONS: dict[tuple[State, State], int] = {

@@ -87,7 +87,7 @@ def test_holes_are_not_mapped():
 def test_register_sanity(reg):
     assert re.fullmatch(r'[A-Z][A-Z0-9_]*', reg.name)
     assert reg.dtype in ('u16', 'i16', 'u32', 'i32')
-    assert reg.access in ('RO', 'RW', 'WO')
+    assert reg.access in ('ro', 'rw', 'wo')
     assert reg.min <= reg.max
     bits = 16 * reg.words
     lo, hi = (-(1 << bits - 1), (1 << bits - 1) - 1) if reg.signed else (0, (1 << bits) - 1)

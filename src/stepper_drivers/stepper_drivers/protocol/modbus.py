@@ -13,6 +13,10 @@ names them. Errors, the same on both links:
 - `drive.LinkError`: no answer, a broken or mismatched answer, or the link down; the caller
   reconnects.
 - `drive.DriveError` (plain): a request this layer refuses to send (a count out of range).
+
+The register maps of the Modbus devices (vendors/*_map.py) are made of `Register`; the
+`read_register`/`write_register` services of their drivers parse the register a request names
+with `parse_raw_register`, the device's specifics given as `RawRegisterRules`.
 """
 
 from __future__ import annotations
@@ -20,7 +24,7 @@ from __future__ import annotations
 import abc
 import dataclasses
 import struct
-from typing import Mapping, Sequence
+from typing import Callable, Mapping, Sequence
 
 from pymodbus.constants import ExcCodes
 
@@ -194,3 +198,168 @@ class ModbusBus(drive.Bus):
             return build(*args)
         except ValueError as exc:
             raise drive.DriveError(f'{self.description}: {exc}') from None
+
+
+# ------------------------------------------------------------------------------ register maps
+HOLDING = 'holding'        # holding registers: FC03 read, FC06/FC16 write
+INPUT = 'input'            # input registers: FC04 read only
+
+_DTYPE_WORDS = {'u16': 1, 'i16': 1, 'u32': 2, 'i32': 2}
+_HEX_UNITS = ('bitfield', 'signature', 'code')     # values shown as 0x0000 in range texts
+
+
+@dataclasses.dataclass(frozen=True)
+class Register:
+    """One entry of a Modbus device's register map: pure data, shared by driver and simulator.
+
+    `access` is spelt 'ro', 'rw' or 'wo', in lower case as the RD4 manual (§8.1 attribute) and
+    the CANopen object dictionaries (vendors/vector_step_map.py) write it; the X-PLUS MT tables
+    print it in upper case. `storable` says that the device's save command keeps the register
+    in its non-volatile memory: a property of the register, where `saved` would read as a state
+    ("has been saved").
+    """
+
+    name: str              # UPPER_SNAKE of the manual's name, e.g. 'CONTROL_WORD'
+    address: int           # protocol (PDU) address on the wire; the lower one of a 32-bit pair
+    dtype: str             # 'u16' | 'i16' | 'u32' | 'i32' (U8 values take a whole u16 register)
+    access: str            # 'ro' | 'rw' | 'wo'
+    default: int = 0
+    min: int = 0
+    max: int = 0xFFFF
+    unit: str = ''         # 'steps', 'Hz', 'ms', ...; 'bitfield', 'signature', 'code': hex values
+    storable: bool = False     # stored by the save command (X-PLUS MT App.1 '**', RD4 CW bit 9)
+    table: str = HOLDING       # HOLDING (FC03/06/16) or INPUT (FC04)
+    title: str = ''            # the manual's heading where it has one, e.g. 'Control Word [0x2A]'
+    # Where the manual lists discrete values only (signatures, codes), the values a write may
+    # carry; empty = any value in min..max.
+    allowed: tuple[int, ...] = ()
+    wp_bit: int | None = None  # RD4: bit in Wrong parameters list [0x09-0x0A] (§8.1.2)
+
+    @property
+    def words(self) -> int:
+        return _DTYPE_WORDS[self.dtype]
+
+    @property
+    def signed(self) -> bool:
+        return self.dtype.startswith('i')
+
+    @property
+    def reg_no(self) -> int:
+        """The 1-based register number (RD4 §7.4.1 "registers numbered 1-16 are addressed as
+        0-15")."""
+        return self.address + 1
+
+    @property
+    def writable(self) -> bool:
+        return self.table == HOLDING and self.access in ('rw', 'wo')
+
+    def accepts(self, value: int) -> bool:
+        """True when `value` is a value this register may be written with."""
+        if self.allowed:
+            return value in self.allowed
+        return self.min <= value <= self.max
+
+    def range_text(self) -> str:
+        if self.allowed:
+            return 'one of ' + ', '.join(self._fmt(v) for v in self.allowed)
+        return f'{self._fmt(self.min)}..{self._fmt(self.max)}'
+
+    def _fmt(self, value: int) -> str:
+        return f'0x{value:04X}' if self.unit in _HEX_UNITS else str(value)
+
+    def __str__(self) -> str:
+        return self.title or f'{self.name} ({self.address})'
+
+
+@dataclasses.dataclass(frozen=True)
+class RawRegisterRules:
+    """What one device's `read_register`/`write_register` services accept as a register, and
+    the words of their refusals: str.format templates with the fields named above each."""
+
+    device: str                    # in 'data type u8 not supported by the <device> (allowed: ..)'
+    registers: Sequence[Register]  # the register map, every table
+    dtypes: tuple[str, ...]        # the data types a request may name
+    # {address}: the address as the request gives it
+    not_a_number: str
+    # {table}, {number}, {dtype}, {end}: an address outside the map
+    outside: str
+    # {number}, {owner}: the address of the second word of a 32-bit register
+    second_word: str
+    # {reg}, {dtype}, {bits}: a register named with a data type of another width
+    mismatch: str
+    # {reg}: a write to a register that is not writable
+    read_only: str
+    # {number}: a write to an input register
+    input_read_only: str = ''
+    # The last address of each table: an address up to it where no register starts (a hole)
+    # may be read and written as it is. Empty: the map's registers only.
+    ends: Mapping[str, int] = dataclasses.field(default_factory=dict)
+    # Table prefixes before the address, e.g. ('hr:', HOLDING); without one: HOLDING.
+    prefixes: tuple[tuple[str, str], ...] = ()
+    find: Callable[[str], Register | None] | None = None    # a register by name, or None
+    # When the address and the data type are both wrong, the data type is refused first.
+    type_first: bool = False
+
+
+def parse_raw_register(rules: RawRegisterRules, address: str, data_type: str,
+                       write: bool) -> Register:
+    """The register a `read_register`/`write_register` request names; DriveError if refused.
+
+    `address`: a number (1001, 0x3E9), after one of `rules.prefixes` if any, or a name that
+    `rules.find` knows. The result is the map's register, or for a hole (see
+    `RawRegisterRules.ends`) a nameless register of `data_type` at that address."""
+    if rules.type_first:
+        dtype = _raw_type(rules, data_type)
+        table, number = _locate(rules, address)
+    else:
+        table, number = _locate(rules, address)
+        dtype = _raw_type(rules, data_type)
+    words = _DTYPE_WORDS[dtype]
+    end = rules.ends.get(table)
+    if end is not None and not 0 <= number <= end - words + 1:
+        raise drive.DriveError(rules.outside.format(table=table, number=number, dtype=dtype,
+                                                    end=end))
+    registers = [r for r in rules.registers if r.table == table]
+    reg = next((r for r in registers if r.address == number), None)
+    if reg is None:
+        owner = next((r for r in registers if r.words == 2 and r.address + 1 == number), None)
+        if owner is not None:
+            raise drive.DriveError(rules.second_word.format(number=number, owner=owner))
+        if end is None:
+            raise drive.DriveError(rules.outside.format(table=table, number=number, dtype=dtype,
+                                                        end=end))
+        reg = Register(name='', address=number, dtype=dtype,
+                       access='ro' if table == INPUT else 'rw', table=table)
+    elif reg.words != words:
+        raise drive.DriveError(rules.mismatch.format(reg=reg, dtype=dtype, bits=16 * reg.words))
+    if write:
+        if table == INPUT:
+            raise drive.DriveError(rules.input_read_only.format(number=number))
+        if not reg.writable:
+            raise drive.DriveError(rules.read_only.format(reg=reg))
+    return reg
+
+
+def _raw_type(rules: RawRegisterRules, data_type: str) -> str:
+    dtype = drive.register_type(data_type).name
+    if dtype not in rules.dtypes:
+        raise drive.DriveError(f'data type {dtype} not supported by the {rules.device} '
+                               f'(allowed: {", ".join(rules.dtypes)})')
+    return dtype
+
+
+def _locate(rules: RawRegisterRules, address: str) -> tuple[str, int]:
+    """(table, address) from the request's address text."""
+    text = str(address).strip()
+    table = HOLDING
+    for prefix, name in rules.prefixes:
+        if text.lower().startswith(prefix):
+            table, text = name, text[len(prefix):].strip()
+            break
+    reg = rules.find(text) if rules.find else None
+    if reg is not None:
+        return reg.table, reg.address
+    try:
+        return table, int(text, 0)
+    except ValueError:
+        raise drive.DriveError(rules.not_a_number.format(address=address)) from None

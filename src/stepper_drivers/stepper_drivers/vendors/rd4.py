@@ -34,10 +34,8 @@ How the contract maps to the RD4 (docs/rd4.md has the full table):
 - home: the RD4 has no homing run: Preset [0x16-0x17] := homing.offset and a rising edge of
   Perform counting preset (bit 11), so it is right whether the register write or the edge applies.
 
-Why one file of about 890 lines: every Rd4Drive operation composes its Control Word from the same
-intent (enabled, Start/Jog, Stop low, outputs, epoch) and relies on the same examined machine
-data, so the class stays whole. What should move out: the vendor description (PARAMS .. validate,
-about 100 lines) into vendors/rd4_params.py, then the pure identity and range checks.
+One class: every Rd4Drive operation composes its Control Word from the same intent (enabled,
+Start/Jog, Stop low, outputs, epoch) and relies on the same examined machine data.
 """
 
 from __future__ import annotations
@@ -51,6 +49,7 @@ from ..drive import (Bus, Drive, DriveError, DriveState, Homing, HomingState, Id
                      LinkError, Motion, ParamSpec, State, Steps, Vendor, register_type)
 from .. import param_rules
 from ..protocol import serial_port
+from ..protocol.modbus import RawRegisterRules, parse_raw_register
 from ..protocol.modbus_rtu import (BITS_PER_CHAR, ILLEGAL_DATA_ADDRESS, ILLEGAL_FUNCTION,
                                     ModbusExceptionError, ModbusRtuBus)
 from . import rd4_map as rm
@@ -67,6 +66,23 @@ STEP_S = 0.0                   # between the transactions of one operation (driv
 MOVE_TRANSACTIONS = 4
 MOVE_CHARS_PER_TRANSACTION = 22
 _RAW_TYPES = ('u16', 'i16', 'u32', 'i32')
+# read_register/write_register: 'hr:0x2A', 'ir:2', '0x2A' (holding) or a register name; an
+# address of §8.1 where no register starts (0x1A-0x28) is read and written as it is.
+_RAW_REGISTERS = RawRegisterRules(
+    device='RD4', registers=rm.HOLDING_REGISTERS + rm.INPUT_REGISTERS, dtypes=_RAW_TYPES,
+    not_a_number="register {address!r}: not a number or an RD4 register name (e.g. '0x2A', "
+                 "'hr:0x2A', 'ir:0x02', 'CONTROL_WORD')",
+    outside='{table} register 0x{number:02X} ({dtype}) is outside the RD4 map '
+            '(0x00-0x{end:02X}, §8.1)',
+    second_word='0x{number:02X} is the low word of {owner}; use 0x{owner.address:02X} with '
+                '{owner.dtype}',
+    mismatch='{reg} is {reg.dtype}: data type {dtype} does not match',
+    read_only='{reg} is read-only (§8.1.1)',
+    input_read_only='input register 0x{number:02X} is read-only (FC04 only)',
+    ends={rm.HOLDING: rm.HOLDING_END, rm.INPUT: rm.INPUT_END},
+    prefixes=(('hr:', rm.HOLDING), ('holding:', rm.HOLDING), ('ir:', rm.INPUT),
+              ('input:', rm.INPUT)),
+    find=rm.find_register, type_first=True)
 
 
 class Rd4Drive(Drive):
@@ -738,60 +754,18 @@ class Rd4Drive(Drive):
                 f"Preset {md['PRESET']}, Work speed {md['WORK_SPEED']} PPS), no Flash memory "
                 'error; the RD4 reports no save completion beyond that')
 
-    def _raw_register(self, address: str, data_type: str, write: bool) -> tuple[str, int, int]:
-        """(table, wire address, words) from 'hr:0x2A', 'ir:2', '0x2A' or 'CONTROL_WORD'."""
-        text = str(address).strip()
-        table = rm.HOLDING
-        for prefix, name in (('hr:', rm.HOLDING), ('holding:', rm.HOLDING), ('ir:', rm.INPUT),
-                             ('input:', rm.INPUT)):
-            if text.lower().startswith(prefix):
-                table, text = name, text[len(prefix):].strip()
-                break
-        dtype = register_type(data_type).name
-        if dtype not in _RAW_TYPES:
-            raise DriveError(f'data type {dtype} not supported by the RD4 (allowed: '
-                             f'{", ".join(_RAW_TYPES)})')
-        words = 2 if dtype.endswith('32') else 1
-        reg = rm.find_register(text)
-        if reg is not None:
-            table, number = reg.table, reg.address
-        else:
-            try:
-                number = int(text, 0)
-            except ValueError:
-                raise DriveError(f'register {address!r}: not a number or an RD4 register name '
-                                 "(e.g. '0x2A', 'hr:0x2A', 'ir:0x02', 'CONTROL_WORD')") from None
-        registers = rm.HOLDING_REGISTERS if table == rm.HOLDING else rm.INPUT_REGISTERS
-        by_address = {r.address: r for r in registers}
-        second = {r.address + 1: r for r in by_address.values() if r.words == 2}
-        end = rm.HOLDING_END if table == rm.HOLDING else rm.INPUT_END
-        if not 0 <= number <= end - words + 1:
-            raise DriveError(f'{table} register 0x{number:02X} ({dtype}) is outside the RD4 map '
-                             f'(0x00-0x{end:02X}, §8.1)')
-        if number in second:
-            raise DriveError(f'0x{number:02X} is the low word of {second[number]}; use '
-                             f'0x{second[number].address:02X} with {second[number].dtype}')
-        reg = by_address.get(number)
-        if reg is not None and reg.words != words:
-            raise DriveError(f'{reg} is {reg.dtype}: data type {dtype} does not match')
-        if write:
-            if table == rm.INPUT:
-                raise DriveError(f'input register 0x{number:02X} is read-only (FC04 only)')
-            if reg is not None and not reg.writable:
-                raise DriveError(f'{reg} is read-only (§8.1.1)')
-        return table, number, words
-
     def read_register(self, address: str, data_type: str) -> int:
-        table, number, words = self._raw_register(address, data_type, write=False)
-        read = self._read_holding if table == rm.HOLDING else self._read_input
-        values = read(number, words)
+        reg = parse_raw_register(_RAW_REGISTERS, address, data_type, write=False)
+        read = self._read_holding if reg.table == rm.HOLDING else self._read_input
+        values = read(reg.address, reg.words)
         signed = data_type.lower().startswith('i')
-        if words == 2:
+        if reg.words == 2:
             return rm.join32(values, signed)
         return values[0] - 0x10000 if signed and values[0] & 0x8000 else values[0]
 
     def write_register(self, address: str, data_type: str, value: int) -> None:
-        _table, number, words = self._raw_register(address, data_type, write=True)
+        reg = parse_raw_register(_RAW_REGISTERS, address, data_type, write=True)
+        number, words = reg.address, reg.words
         value = register_type(data_type).check(int(value))
         values = rm.split32(value) if words == 2 else [value & 0xFFFF]
         if number == HR['CONTROL_WORD'].address:

@@ -17,57 +17,26 @@ import dataclasses
 import logging
 from typing import Mapping, Sequence
 
+from ..protocol.modbus import HOLDING, INPUT, Register
+
 logger = logging.getLogger(__name__)
-
-HOLDING = 'holding'
-INPUT = 'input'
-
-
-@dataclasses.dataclass(frozen=True)
-class Register:
-    name: str              # UPPER_SNAKE of the manual's name, e.g. 'CONTROL_WORD'
-    title: str             # the manual's heading, e.g. 'Control Word [0x2A]'
-    table: str             # HOLDING (FC03/06/16) or INPUT (FC04)
-    address: int           # 0-based wire address; the lower one of a 32-bit pair
-    dtype: str             # 'u16' | 'i16' | 'u32' | 'i32'
-    access: str            # 'ro' | 'rw' (§8.1 attribute)
-    default: int = 0       # §10 (T32 model where the models differ; see MODELS)
-    min: int = 0
-    max: int = 0xFFFF
-    unit: str = ''
-    wp_bit: int | None = None   # bit in Wrong parameters list [0x09-0x0A] (§8.1.2)
-    saved: bool = False         # machine data stored by Save parameters (CW bit 9)
-
-    @property
-    def words(self) -> int:
-        return 2 if self.dtype.endswith('32') else 1
-
-    @property
-    def signed(self) -> bool:
-        return self.dtype.startswith('i')
-
-    @property
-    def reg_no(self) -> int:
-        return self.address + 1
-
-    @property
-    def writable(self) -> bool:
-        return self.table == HOLDING and self.access == 'rw'
-
-    def __str__(self) -> str:
-        return self.title
 
 
 def _h(address, name, title, dtype, access, default=0, lo=0, hi=0xFFFF, unit='', wp_bit=None,
-       saved=True):
-    return Register(name, title, HOLDING, address, dtype, access, default, lo, hi, unit, wp_bit,
-                    saved)
+       storable=True):
+    """One holding register: `access` 'ro' | 'rw' (§8.1 attribute); `default` per §10 (the T32
+    model's where the models differ, see MODELS); `storable`: machine data stored by Save
+    parameters (CW bit 9). A register's str() is its `title`, e.g. 'Control Word [0x2A]'."""
+    return Register(name=name, address=address, dtype=dtype, access=access, default=default,
+                    min=lo, max=hi, unit=unit, storable=storable, table=HOLDING, title=title,
+                    wp_bit=wp_bit)
 
 
 def _i(address, name, title, dtype, unit=''):
     lo, hi = {'u16': (0, 0xFFFF), 'i16': (-0x8000, 0x7FFF), 'u32': (0, 0xFFFFFFFF),
               'i32': (-(1 << 31), (1 << 31) - 1)}[dtype]
-    return Register(name, title, INPUT, address, dtype, 'ro', 0, lo, hi, unit, None, False)
+    return Register(name=name, address=address, dtype=dtype, access='ro', min=lo, max=hi,
+                    unit=unit, table=INPUT, title=title)
 
 
 # §8.1.1 machine data; defaults §10, ranges §8.1.1, WP bits §8.1.2 Wrong parameters list.
@@ -108,10 +77,11 @@ HOLDING_REGISTERS: tuple[Register, ...] = (
        20),
     # Command registers: not machine data, not saved (not in the §10 list).
     _h(0x29, 'EXTRA_COMMANDS', 'Extra commands register [0x29]', 'u16', 'rw', 0, 0, 0xFFFF,
-       saved=False),
-    _h(0x2A, 'CONTROL_WORD', 'Control Word [0x2A]', 'u16', 'rw', 0, 0, 0xFFFF, saved=False),
+       storable=False),
+    _h(0x2A, 'CONTROL_WORD', 'Control Word [0x2A]', 'u16', 'rw', 0, 0, 0xFFFF,
+       storable=False),
     _h(0x2B, 'TARGET_POSITION', 'Target position [0x2B-0x2C]', 'i32', 'rw', 0, -(1 << 31),
-       (1 << 31) - 1, 'pulses', saved=False),
+       (1 << 31) - 1, 'pulses', storable=False),
 )
 
 # §8.1.2 input registers: 13 variables in 16 registers 0x00-0x0F.

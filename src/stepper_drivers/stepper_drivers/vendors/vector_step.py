@@ -1,15 +1,16 @@
 """AEC Vector Step over CANopen (DS-301 V4.01 / DSP-402 V1.1): the drive class and the vendor.
 
 Objects, codes and texts come from `vector_step_map.py` (which cites the sections of the manual
-`aec_vector_step_canopen_it.txt`), the CiA 402 tables and walker from `cia402.py`, the bus and
-node plumbing from `protocol/canopen_link.py`. Every boot (connect) of a node: SDO ping, identity
-(0x1000, 0x1018 and the AEC registers the driver needs: IdentityError otherwise), NMT reset
-communication with the boot-up latch, heartbeat producer 0x1017, the drive-side watchdogs (0x1006
-SYNC timeout, 0x1016 consumer of this node's heartbeat), the PDO set of DRIVER_RPDOS/DRIVER_TPDOS
-written with the manual's mapping procedure, values seeded by SDO, NMT start and a heartbeat
-that shows OPERATIONAL. After that the state comes from TxPDOs only, so `read_state()` costs no
-bus traffic; the heartbeat consumer and the boot-up latch turn a silent or rebooted node into a
-LinkError (the node layer reconnects).
+`aec_vector_step_canopen_it.txt`), the CiA 402 tables and walker from `cia402.py`, enable,
+disable, the motion preconditions and the fault reset from `cia402_drive.Cia402Drive` (this class
+fills its hooks), the bus and node plumbing from `protocol/canopen_link.py`. Every boot (connect)
+of a node: SDO ping, identity (0x1000, 0x1018 and the AEC registers the driver needs:
+IdentityError otherwise), NMT reset communication with the boot-up latch, heartbeat producer
+0x1017, the drive-side watchdogs (0x1006 SYNC timeout, 0x1016 consumer of this node's heartbeat),
+the PDO set of DRIVER_RPDOS/DRIVER_TPDOS written with the manual's mapping procedure, values
+seeded by SDO, NMT start and a heartbeat that shows OPERATIONAL. After that the state comes from
+TxPDOs only, so `read_state()` costs no bus traffic; the heartbeat consumer and the boot-up latch
+turn a silent or rebooted node into a LinkError (the node layer reconnects).
 
 Interpolated position (mode 7) is step-wise like the rest for its start (`start_interpolation`);
 the bus owner then sends one point per SYNC period (`interpolation_point`, one RxPDO4 frame).
@@ -25,10 +26,9 @@ event-driven TxPDO seen twice looks like), its `controlword` setter (it would se
 stale mode byte 0), `homing()` (the AEC method numbers are not the library's, bit 10 during homing
 is not documented) and `reset_from_fault()` (the manual clears 0x1003 first). No rclpy.
 
-Why one file of about 1080 lines: every command rides on an RxPDO that carries the controlword
-with the mode or the target (`_write_controlword`), and connect maps those same PDOs, so boot,
-state machine, motion and interpolation share one PDO image. A split would go along the boot
-(connect .. `_seed`, about 210 lines) into vendors/vector_step_boot.py, then the vendor params.
+One class: every command rides on an RxPDO that carries the controlword with the mode or the
+target (`_write_controlword`), and connect maps those same PDOs, so boot, state machine, motion
+and interpolation share one PDO image.
 """
 
 from __future__ import annotations
@@ -39,21 +39,16 @@ from typing import Any, Mapping
 
 from .. import cia402, param_rules
 from ..cia402 import CW_BIT_NEW_SET_POINT, CW_ENABLE_OPERATION
-from ..drive import (Bus, Drive, DriveError, DriveState, Homing, HomingState, IdentityError,
-                     LinkError, Motion, ParamSpec, State, Steps, Vendor, register_type)
+from ..cia402_drive import Cia402Drive
+from ..drive import (Bus, DriveError, DriveState, Homing, HomingState, IdentityError, LinkError,
+                     Motion, ParamSpec, State, Steps, Vendor, register_type)
 from ..protocol.canopen_link import (MASTER, POLL_S, CanBus, RemoteDrive, SdoAbortError, pack,
                                      unpack)
 from . import vector_step_map as vm
 
 logger = logging.getLogger(__name__)
 
-CW_SW_DELAY_S = 0.002          # first statusword check after a controlword (TxPDO on change)
-ENABLE_TIMEOUT_S = 1.0
-DISABLE_TIMEOUT_S = 1.0
-FAULT_RESET_TIMEOUT_S = 0.4
-HANDSHAKE_TIMEOUT_S = 0.5
 IP_START_TIMEOUT_S = 0.5       # statusword bit 12 (ip mode active) after the enable, by TxPDO
-MODE_SWITCH_TIMEOUT_S = 0.5
 SAVE_TIMEOUT_S = 5.0           # Rloadsav 0x81 (EEPROM write) must read 0 again within this
 SAVE_POLL_S = 0.02
 WARNING_READ_PERIOD_S = 1.0    # Rwarning is read by SDO at most this often while SW bit 7 is set
@@ -174,10 +169,20 @@ def validate(params: Mapping[str, Any]) -> list[str]:
             name, view, int(bus['can.master_heartbeat_ms']), float(bus['can.sync_period_s'])))
 
 
-class VectorStepDrive(Drive):
+class VectorStepDrive(Cia402Drive):
     """One Vector Step on a CAN bus (node-ID = parameter `node_id`)."""
 
     state_from_cache = True      # read_state: the TxPDO values (SDO only for faults, warnings)
+    CW_SW_DELAY_S = 0.002        # first statusword check after a controlword (TxPDO on change)
+    STATUSWORD_POLL_S = POLL_S   # the statusword comes by TxPDO: the receive thread records it
+    ENABLE_TIMEOUT_S = 1.0
+    FAULT_RESET_TIMEOUT_S = 0.4
+    FAULT_RESET_ATTEMPTS = 2     # the second after Ralarm32 := 0 (_before_fault_reset)
+    # disable() writes nothing where the power stage is off already (or the drive leaves the
+    # state by itself)
+    DISABLE_LEAVES = (State.SWITCH_ON_DISABLED, State.FAULT, State.FAULT_REACTION_ACTIVE,
+                      State.NOT_READY_TO_SWITCH_ON)
+    NOT_ENABLED_TEXT = '{what}: the drive is not enabled ({state}); call enable first'
 
     def __init__(self, bus: Bus, name: str, params: Mapping[str, Any]):
         params = VENDOR.with_defaults(params)
@@ -203,9 +208,6 @@ class VectorStepDrive(Drive):
         self.boot_retries = int(params['boot_retries'])
         eds = str(params.get('can.eds_file') or '') or str(vm.eds_path())
         self.link = RemoteDrive(bus, self.node_id, eds, name, emcy_text=vm.emcy_text)
-        self.cia = cia402.Cia402Device(self._read_statusword, self._write_controlword,
-                                       min_delay_s=CW_SW_DELAY_S, name=name)
-        self.cia.POLL_S = POLL_S
         self._extra: tuple[int | None, int | None] = (None, None)   # (mode, velocity) to send
         self._mode_cmd: int | None = None  # 0x6060 last sent
         self._target = 0                   # 0x607A sent with every RxPDO2
@@ -215,6 +217,7 @@ class VectorStepDrive(Drive):
         self._configured = False           # this driver armed the node (connect completed)
         self._homing = HomingState.IDLE
         self._fault_cache: tuple[int, int, str, tuple[str, ...]] | None = None
+        self._reset_code = 0               # the fault code a fault_reset started from
         self._warnings: tuple[float, tuple[str, ...]] = (0.0, ())
         self._pdo_statusword: dict[int, int] = {}    # COB-ID -> statusword of its last TxPDO
         self._statusword_seen = (0, 0.0)             # (newest TxPDO statusword, when it came)
@@ -730,26 +733,21 @@ class VectorStepDrive(Drive):
         return texts
 
     # ------------------------------------------------------------------ power stage
-    def enable(self) -> Steps[None]:
-        sw = self._read_statusword()
-        state = cia402.decode_state(sw)
-        if state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
-            code, text, _ = yield from self._fault()
-            raise DriveError(f'{self._prefix()}in FAULT 0x{code:04X} ({text}); call fault_reset '
-                             'first')
-        if state == State.OPERATION_ENABLED:
-            return
+    # enable() and disable() are Cia402Drive's; the Vector Step's parts of them:
+    def _enable_refusal(self, sw: int) -> Steps[str]:
+        code, text, _ = yield from self._fault()
+        return f'{self._prefix()}in FAULT 0x{code:04X} ({text})'
+
+    def _hold_position(self, state: State) -> None:
         self._target = self._value(vm.POSITION_ACTUAL_VALUE)     # nothing moves on enable
         self._homing = HomingState.IDLE
-        if self._mode_cmd != vm.MODE_PROFILE_POSITION or \
-                self._value(vm.MODES_OF_OPERATION_DISPLAY) != vm.MODE_PROFILE_POSITION:
+        if not self._in_mode(vm.MODE_PROFILE_POSITION):
             self._command(HOLD_CW.get(state, cia402.CW_DISABLE_VOLTAGE),
                           mode=vm.MODE_PROFILE_POSITION)
-        try:
-            yield from self.cia.bring_to(State.OPERATION_ENABLED, ENABLE_TIMEOUT_S)
-        except DriveError as exc:
-            why = yield from self._why_not_enabled()
-            raise DriveError(f'cannot enable: {exc}{why}') from None
+
+    def _enable_failed(self, exc: DriveError) -> Steps[None]:
+        why = yield from self._why_not_enabled()
+        raise DriveError(f'cannot enable: {exc}{why}') from None
 
     def _why_not_enabled(self) -> Steps[str]:
         """The manual's registers that explain a power stage that does not come on."""
@@ -774,15 +772,10 @@ class VectorStepDrive(Drive):
         return '; the power stage is blocked: ' + '; '.join(reasons) + \
             ' (check the motor supply and the STO inputs)'
 
-    def disable(self) -> Steps[None]:
-        state = cia402.decode_state(self._read_statusword())
+    def _disabling(self) -> None:
         self._homing = HomingState.IDLE
-        if state in (State.SWITCH_ON_DISABLED, State.FAULT, State.FAULT_REACTION_ACTIVE,
-                     State.NOT_READY_TO_SWITCH_ON):
-            return
-        yield from self.cia.bring_to(State.SWITCH_ON_DISABLED, DISABLE_TIMEOUT_S)
 
-    def _require_enabled(self, what: str) -> None:
+    def _statusword_for_motion(self) -> tuple[int, None]:
         """OPERATION ENABLED as the drive says: its last TxPDO when the event timer of TxPDO2
         keeps them fresh, else the statusword by SDO."""
         self._check_alive()
@@ -791,19 +784,19 @@ class VectorStepDrive(Drive):
         if not self.event_timer_ms or at is None or \
                 time.monotonic() - at > 2 * self.event_timer_ms / 1000.0:
             sw = self._barrier()
-        state = cia402.decode_state(sw)
-        if state != State.OPERATION_ENABLED:
-            raise DriveError(f'{what}: the drive is not enabled ({cia402.describe(sw)}); call '
-                             'enable first')
+        return sw, None
 
-    def _ensure_mode(self, mode: int) -> Steps[None]:
+    def _in_mode(self, mode: int, current: int | None = None) -> bool:
+        """The mode this driver sent last (0x6060) and the drive shows (0x6061, TxPDO1)."""
+        return self._mode_cmd == mode and self._value(vm.MODES_OF_OPERATION_DISPLAY) == mode
+
+    def _switch_mode(self, mode: int, what: str, current: int | None) -> Steps[None]:
         """0x6060 by RxPDO1 (with the controlword that holds OPERATION ENABLED, bits 4-6 low),
         then wait until 0x6061 (TxPDO1) shows it."""
-        if self._mode_cmd == mode and self._value(vm.MODES_OF_OPERATION_DISPLAY) == mode:
-            return
         self._command(CW_ENABLE_OPERATION, mode=mode)
         ok = yield from self.link.wait(
-            lambda: self._value(vm.MODES_OF_OPERATION_DISPLAY) == mode, MODE_SWITCH_TIMEOUT_S)
+            lambda: self._value(vm.MODES_OF_OPERATION_DISPLAY) == mode,
+            self.MODE_SWITCH_TIMEOUT_S)
         if not ok:                           # no TxPDO1 on the change: ask once by SDO
             display = int(self.link.read(vm.MODES_OF_OPERATION_DISPLAY))
             self._values()[vm.MODES_OF_OPERATION_DISPLAY] = display
@@ -855,17 +848,11 @@ class VectorStepDrive(Drive):
         # New set-point, change set immediately (bit 5), absolute (bit 6 = 0): the handshake of
         # CiA 402 on bits 4 / 12 [CONTROLWORD], [STATUSWORD].
         yield from self.cia.start_set_point(CW_ENABLE_OPERATION, relative=False, immediate=True,
-                                            timeout_s=HANDSHAKE_TIMEOUT_S)
-
-    @property
-    def motion_sent_t(self) -> float | None:
-        """The new set point's write (controlword bit 4 up: the drive starts then)."""
-        return self.cia.set_point_sent_t
+                                            timeout_s=self.HANDSHAKE_TIMEOUT_S)
 
     def set_velocity(self, velocity_steps_s: float, motion: Motion) -> Steps[None]:
         units = self._rps100(velocity_steps_s, vm.PROFILE_VELOCITY, 0, 'velocity')
-        jog = self._mode_cmd == vm.MODE_JOG and \
-            self._value(vm.MODES_OF_OPERATION_DISPLAY) == vm.MODE_JOG
+        jog = self._in_mode(vm.MODE_JOG)
         if units == 0:                        # a stop: never refused, see stop()
             if not jog or cia402.decode_state(self._read_statusword()) != \
                     State.OPERATION_ENABLED:
@@ -1072,28 +1059,32 @@ class VectorStepDrive(Drive):
     # ------------------------------------------------------------------ maintenance
     def fault_reset(self) -> Steps[str]:
         """The manual's procedure [SEGNALAZIONE DI ERRORE]: (1) the cause is gone, (2) 0x1003:00
-        = 0, (3) back to operation enable, which starts with transition 15 (bit 7 rising edge)."""
+        = 0, (3) back to operation enable, which starts with transition 15 (bit 7 rising edge):
+        Cia402Drive.fault_reset, FAULT_RESET_ATTEMPTS edges with the hooks below."""
         state = cia402.decode_state(self._read_statusword())
-        if state not in (State.FAULT, State.FAULT_REACTION_ACTIVE):
+        if state not in cia402.FAULT_STATES:
             self.link.write(vm.PRE_DEFINED_ERROR_FIELD, 0, 0)
             self.link.emcy = None
             return ''
-        code, text, _ = yield from self._fault()
-        for attempt in range(2):
+        self._reset_code, _, _ = yield from self._fault()
+        return (yield from super().fault_reset())
+
+    def _before_fault_reset(self, attempt: int) -> Steps[None]:
+        yield 0.0
+        if attempt:
+            # "Per resettare gli allarmi scrivere 0 in questo registro" (Ralarm32).
+            self.link.write(vm.RALARM32, vm.AEC_SUB, 0)
             yield 0.0
-            if attempt:
-                # "Per resettare gli allarmi scrivere 0 in questo registro" (Ralarm32).
-                self.link.write(vm.RALARM32, vm.AEC_SUB, 0)
-                yield 0.0
-            self.link.write(vm.PRE_DEFINED_ERROR_FIELD, 0, 0)
-            sw = yield from self.cia.fault_reset(FAULT_RESET_TIMEOUT_S)
-            if cia402.decode_state(sw) not in (State.FAULT, State.FAULT_REACTION_ACTIVE):
-                self.link.emcy = None
-                self._fault_cache = None
-                self._homing = HomingState.IDLE
-                logger.info('%sfault 0x%04X cleared: %s', self._prefix(), code,
-                            cia402.describe(sw))
-                return ''
+        self.link.write(vm.PRE_DEFINED_ERROR_FIELD, 0, 0)
+
+    def _fault_cleared(self, sw: int) -> None:
+        self.link.emcy = None
+        self._fault_cache = None
+        self._homing = HomingState.IDLE
+        logger.info('%sfault 0x%04X cleared: %s', self._prefix(), self._reset_code,
+                    cia402.describe(sw))
+
+    def _fault_remains(self, sw: int) -> Steps[str]:
         self._fault_cache = None
         yield 0.0
         code, text, _ = yield from self._fault()

@@ -1,17 +1,16 @@
 """R.T.A. X-PLUS MT (B4/S4) over Modbus TCP: the drive class and the vendor description.
 
 Register numbers, bit meanings and timings come from the manual `rta_xplus_mt_modbus_tcp.txt`
-(§12 drive sub-states and T13/T14, §13 registers, App.1); the map lives in `xplus_mt_map.py` and
-the CiA 402 state machine in `cia402.py`. No rclpy.
+(§12 drive sub-states and T13/T14, §13 registers, App.1); the map lives in `xplus_mt_map.py`, the
+CiA 402 state machine in `cia402.py`, and enable, disable, the motion preconditions and the fault
+reset in `cia402_drive.Cia402Drive`, whose hooks this class fills. No rclpy.
 
 Operations that wait (enable, disable, fault_reset, move_to, set_velocity, start_homing,
 save_params) are step-wise (`drive.Steps`): they yield between transactions, so the bus owner
 serves the other drives meanwhile. connect, read_state and stop are one short burst each.
 
-Why one file of about 720 lines: every XplusMtDrive operation shares one Modbus client, the
-Cia402Device handshake and the driver's own record (homed, current-on time, watchdog armed), so
-the class stays whole. What should move out is the vendor description (PARAMS, the `_check_*`
-rules, validate: about 110 lines) into a vendors/xplus_mt_params.py, for all four vendors alike.
+One class: every XplusMtDrive operation shares one Modbus client, the Cia402Device handshake
+and the driver's own record (homed, current-on time, watchdog armed).
 """
 
 from __future__ import annotations
@@ -26,8 +25,10 @@ from ..cia402 import (CW_BIT_CHANGE_SET_IMMEDIATELY, CW_BIT_HALT, CW_BIT_NEW_SET
                       CW_ENABLE_OPERATION, SW_BIT_FOLLOWING_ERROR, SW_BIT_INTERNAL_LIMIT,
                       SW_BIT_TARGET_REACHED, SW_BIT_VOLTAGE_ENABLED, SW_BIT_WARNING,
                       SW_BIT_ZERO_SPEED)
-from ..drive import (Bus, Drive, DriveError, DriveState, Homing, HomingState, IdentityError,
-                     Motion, ParamSpec, State, Steps, Vendor, register_type)
+from ..cia402_drive import Cia402Drive
+from ..drive import (Bus, DriveError, DriveState, Homing, HomingState, IdentityError, Motion,
+                     ParamSpec, State, Steps, Vendor, register_type)
+from ..protocol.modbus import RawRegisterRules, parse_raw_register
 from ..protocol.modbus_tcp import ModbusExceptionError, ModbusTcpBus, make_bus as make_tcp_bus
 from . import xplus_mt_map as xm
 
@@ -42,13 +43,7 @@ SPLIT_READS = ((1001, 2), (1004, 8), (1020, 2))
 # 1081..1097 have no hole: step revolution (identity), input config, brake delays, watchdog.
 SETTINGS_BLOCK = (1081, 17)
 
-CW_SW_DELAY_S = 0.012          # §13 "Register 1001" note: >= 12 ms before checking the SW
 SETTLE_MIN_S = 0.2             # §12 note after transition 16: ~50-200 ms settling, current on
-ENABLE_TIMEOUT_S = 1.5         # the 3 steps + HV "at least 500 ms before" transition 3 (§12)
-DISABLE_TIMEOUT_S = 1.0
-FAULT_RESET_TIMEOUT_S = 1.0
-HANDSHAKE_TIMEOUT_S = 0.5
-MODE_SWITCH_TIMEOUT_S = 0.5
 
 # Drive-side watchdog (§13 "Register 1097": no Modbus read or write within the timeout -> Fault,
 # current off). 1 s: 50 polls at the default 50 Hz, and more than a lost reply (timeout_s 0.5 s)
@@ -59,15 +54,27 @@ WATCHDOG_MIN_MS = 100          # §13 "Register 1097": 100÷32000 ms (0 = off)
 WATCHDOG_MIN_POLLS = 5         # the watchdog must span at least this many poll periods
 
 _SIMPLE_INT_TYPES = ('u16', 'i16', 'u32', 'i32')
+# read_register/write_register: the App.1 registers only, by their PDU address (§11).
+_RAW_REGISTERS = RawRegisterRules(
+    device='X-PLUS MT', registers=tuple(xm.REGISTERS.values()), dtypes=_SIMPLE_INT_TYPES,
+    not_a_number='register address {address!r} is not a number (e.g. 1001 or 0x3E9)',
+    outside='register {number} is not in the X-PLUS MT register map (manual App.1)',
+    second_word='register {number} is the second word of {owner}; use address '
+                '{owner.address} with data type {owner.dtype}',
+    mismatch='{reg} is {reg.dtype}: data type {dtype} does not match its {bits} bits',
+    read_only='{reg} is read-only (RO)')          # App.1's spelling of the access
 _NO_SUCH_REGISTER = (0x01, 0x02)   # ILLEGAL FUNCTION / ILLEGAL DATA ADDRESS
 _REFUSED = (0x01, 0x02, 0x03)      # ... and ILLEGAL DATA VALUE: the device says no
 
 
-class XplusMtDrive(Drive):
+class XplusMtDrive(Cia402Drive):
     """One X-PLUS MT on a Modbus TCP connection (unit id = parameter `unit_id`)."""
 
     start_stop_steps_s = float(xm.START_STOP_MAX_HZ)     # §13 "Motion Profiles"
     min_velocity_steps_s = 1.0        # PROFILE_VELOCITY (1044) in whole Hz, 0 refused
+    CW_SW_DELAY_S = 0.012      # §13 "Register 1001" note: >= 12 ms before checking the SW
+    ENABLE_TIMEOUT_S = 1.5     # the 3 steps + HV "at least 500 ms before" transition 3 (§12)
+    STATUSWORD_READ_IS_TRANSACTION = True     # every statusword read is an FC03 of 1001
 
     def __init__(self, bus: Bus, name: str, params: Mapping[str, Any]):
         params = VENDOR.with_defaults(params)
@@ -80,8 +87,6 @@ class XplusMtDrive(Drive):
         self.word_order = str(params['word_order'])
         self.watchdog_ms = int(params['watchdog_ms'])
         self.input_config = int(params['input_config'])
-        self.cia = cia402.Cia402Device(self._read_statusword, self._write_controlword,
-                                       min_delay_s=CW_SW_DELAY_S, name=name)
         self._split_reads = False
         self._homed = False
         self._current_on_at: float | None = None
@@ -305,62 +310,54 @@ class XplusMtDrive(Drive):
         return f'{text} (0x{code:04X})' if code else 'Fault with error code 0x0000'
 
     # ------------------------------------------------------------------ power stage
-    def enable(self) -> Steps[None]:
-        sw = self._read_statusword()
-        state = cia402.decode_state(sw)
-        if state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
-            code = self._read('ERROR_CODE')
-            raise DriveError(f'enable: drive is in {cia402.describe(sw)}, '
-                             f'{self._error_text(code)}; call fault_reset first')
-        if state == State.OPERATION_ENABLED:
-            self._was_enabled = True
-            return
-        yield 0.0
+    # enable() and disable() are Cia402Drive's; the X-PLUS MT's parts of them:
+    def _enable_refusal(self, sw: int) -> str:
+        code = self._read('ERROR_CODE')
+        return f'enable: drive is in {cia402.describe(sw)}, {self._error_text(code)}'
+
+    def _hold_position(self, state: State) -> Steps[None]:
         if state != State.QUICK_STOP_ACTIVE:
             # Nothing may move: Target Position := Position Actual Value, then Profile Position.
             actual = self._read('POSITION_ACTUAL_VALUE')
             self._write(('TARGET_POSITION', actual))
             yield 0.0
             yield from self._set_mode(xm.MODE_PROFILE_POSITION)
+
+    def _before_switch_on(self, state: State) -> Steps[None]:
+        """Switch On (transition 3) needs the high voltage: checked in READY TO SWITCH ON."""
         if state in (State.SWITCH_ON_DISABLED, State.READY_TO_SWITCH_ON):
-            sw = yield from self.cia.bring_to(State.READY_TO_SWITCH_ON, ENABLE_TIMEOUT_S)
+            sw = yield from self.cia.bring_to(State.READY_TO_SWITCH_ON, self.ENABLE_TIMEOUT_S)
             if not sw & SW_BIT_VOLTAGE_ENABLED:
                 raise DriveError(
                     f'enable: the power stage has no high voltage: {cia402.describe(sw)} with '
                     f'Voltage Enabled (status word bit 4) = 0; Switch On needs HV present at '
                     f'least 500 ms before (§12 transition 3)')
             yield 0.0
-        try:
-            yield from self.cia.bring_to(State.OPERATION_ENABLED, ENABLE_TIMEOUT_S)
-        except DriveError as exc:
-            yield 0.0
-            sw = self._read_statusword()
-            if cia402.decode_state(sw) == State.READY_TO_SWITCH_ON:
-                hv = 'present' if sw & SW_BIT_VOLTAGE_ENABLED else 'absent (bit 4 = 0)'
-                raise DriveError(f'{exc}; high voltage {hv}: Switch On needs HV at least '
-                                 f'500 ms before the transition (§12 transition 3)') from exc
-            raise
-        self._current_on_at = time.monotonic()
+
+    def _enable_failed(self, exc: DriveError) -> None:
+        sw = self._read_statusword()
+        if cia402.decode_state(sw) == State.READY_TO_SWITCH_ON:
+            hv = 'present' if sw & SW_BIT_VOLTAGE_ENABLED else 'absent (bit 4 = 0)'
+            raise DriveError(f'{exc}; high voltage {hv}: Switch On needs HV at least '
+                             f'500 ms before the transition (§12 transition 3)') from exc
+
+    def _enabled(self, switched_on: bool) -> None:
+        if switched_on:
+            self._current_on_at = time.monotonic()
         self._was_enabled = True
 
-    def disable(self) -> Steps[None]:
-        sw = self._read_statusword()
-        if cia402.decode_state(sw) in (State.FAULT, State.FAULT_REACTION_ACTIVE):
-            return        # current is already off; leaving Fault needs fault_reset
-        yield 0.0
-        yield from self.cia.bring_to(State.SWITCH_ON_DISABLED, DISABLE_TIMEOUT_S)
+    def _disabled(self) -> None:
+        # (disable leaves a drive in FAULT alone: current is already off; leaving Fault needs
+        # fault_reset)
         self._current_on_at = None
         self._was_enabled = False
 
     # ------------------------------------------------------------------ motion
-    def _require_enabled(self, what: str) -> int:
-        """One FC03 of 1001..1002: the drive must be in OPERATION ENABLED, checked on the wire;
-        returns Modes of Operation Display (1002), so no second read is needed for the mode."""
+    def _statusword_for_motion(self) -> tuple[int, int]:
+        """One FC03 of 1001..1002: the state checked on the wire, and Modes of Operation Display
+        (1002), so no second read is needed for the mode."""
         sw, mode = self._read_words(1001, 2)
-        if cia402.decode_state(sw) != State.OPERATION_ENABLED:
-            raise DriveError(f'{what}: drive is in {cia402.describe(sw)}, not OPERATION '
-                             f'ENABLED; enable first')
-        return mode - 0x10000 if mode & 0x8000 else mode
+        return sw, mode - 0x10000 if mode & 0x8000 else mode
 
     def _wait_settled(self) -> Steps[None]:
         """§12 note: New Set Points sent before the motor settled (~50-200 ms, and 1096 Brake
@@ -373,7 +370,7 @@ class XplusMtDrive(Drive):
 
     def _set_mode(self, mode: int) -> Steps[None]:
         self._write(('MODE_OF_OPERATION', mode))
-        deadline = time.monotonic() + MODE_SWITCH_TIMEOUT_S
+        deadline = time.monotonic() + self.MODE_SWITCH_TIMEOUT_S
         while True:
             yield cia402.Cia402Device.POLL_S
             shown = self._read('MODE_OF_OPERATION_DISPLAY')
@@ -384,11 +381,11 @@ class XplusMtDrive(Drive):
                 raise DriveError(f'MODE_OF_OPERATION (1041) := {mode} not taken: '
                                  f'MODE_OF_OPERATION_DISPLAY (1002) reads {shown}')
 
-    def _ensure_mode(self, mode: int, what: str, current: int) -> Steps[None]:
+    def _in_mode(self, mode: int, current: int | None = None) -> bool:
         """`current`: 1002 as read by _require_enabled just before (the step that read it)."""
-        yield 0.0
-        if current == mode:
-            return
+        return current == mode
+
+    def _switch_mode(self, mode: int, what: str, current: int | None) -> Steps[None]:
         state = self.read_state()
         if state.moving:
             raise DriveError(f'{what}: the drive is moving in {state.mode or f"mode {current}"};'
@@ -431,12 +428,7 @@ class XplusMtDrive(Drive):
         yield from self._release_halt()
         yield from self.cia.start_set_point(
             CW_ENABLE_OPERATION | CW_BIT_CHANGE_SET_IMMEDIATELY, relative=False, immediate=True,
-            timeout_s=HANDSHAKE_TIMEOUT_S)
-
-    @property
-    def motion_sent_t(self) -> float | None:
-        """The new set point's write (controlword bit 4 up: the drive starts then)."""
-        return self.cia.set_point_sent_t
+            timeout_s=self.HANDSHAKE_TIMEOUT_S)
 
     def set_velocity(self, velocity_steps_s: float, motion: Motion) -> Steps[None]:
         _, accel, decel = self._motion_values(motion, 'set_velocity')
@@ -453,7 +445,7 @@ class XplusMtDrive(Drive):
             yield 0.0
             yield from self._wait_settled()
             self.cia.write(CW_ENABLE_OPERATION)
-            yield CW_SW_DELAY_S
+            yield self.CW_SW_DELAY_S
             self.cia.write(CW_ENABLE_OPERATION | CW_BIT_NEW_SET_POINT)
 
     def stop(self, quick: bool = False) -> None:
@@ -513,25 +505,24 @@ class XplusMtDrive(Drive):
         yield from self._release_halt()
         base = CW_ENABLE_OPERATION
         self.cia.write(base)                         # bit 4 low, so the next write is an edge
-        yield CW_SW_DELAY_S
+        yield self.CW_SW_DELAY_S
         self.cia.write(base | CW_BIT_NEW_SET_POINT)  # homing start, held high while homing
         met, sw = yield from self.cia.wait_for(
-            lambda s: cia402.homing_state(s) != HomingState.IDLE, HANDSHAKE_TIMEOUT_S)
+            lambda s: cia402.homing_state(s) != HomingState.IDLE, self.HANDSHAKE_TIMEOUT_S)
         if not met:
             raise DriveError(f'home: homing did not start (status word bits 13/12/10 still '
                              f'"not started"): {cia402.describe(sw)}')
         return ''
 
     # ------------------------------------------------------------------ maintenance
-    def fault_reset(self) -> Steps[str]:
-        sw = yield from self.cia.fault_reset(FAULT_RESET_TIMEOUT_S)
-        state = cia402.decode_state(sw)
-        if state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
-            yield 0.0
-            return (f'{self._error_text(self._read("ERROR_CODE"))}; still in '
-                    f'{cia402.describe(sw)}: the cause is still present')
+    # fault_reset() is Cia402Drive's (one bit-7 edge); the X-PLUS MT's parts of it:
+    def _fault_remains(self, sw: int) -> Steps[str]:
+        yield 0.0
+        return (f'{self._error_text(self._read("ERROR_CODE"))}; still in '
+                f'{cia402.describe(sw)}: the cause is still present')
+
+    def _fault_cleared(self, sw: int) -> None:
         self._was_enabled = False
-        return ''
 
     def save_params(self) -> str:
         """One burst, not step-wise: the watchdog is off in between (see below), and a step
@@ -561,33 +552,8 @@ class XplusMtDrive(Drive):
                 f'Modbus; keep the 24 V logic supply on for more than '
                 f'{xm.SAVE_HOLD_24V_S:g} s (§13 "Register 1260" Note1){watchdog}')
 
-    def _raw_register(self, address: str, data_type: str, write: bool) -> xm.Register:
-        try:
-            number = int(str(address).strip(), 0)
-        except ValueError:
-            raise DriveError(f'register address {address!r} is not a number (e.g. 1001 or '
-                             f'0x3E9)') from None
-        dtype = register_type(data_type).name
-        if dtype not in _SIMPLE_INT_TYPES:
-            raise DriveError(f'data type {dtype} not supported by the X-PLUS MT (allowed: '
-                             f'{", ".join(_SIMPLE_INT_TYPES)})')
-        reg = xm.BY_ADDRESS.get(number)
-        if reg is None:
-            owner = xm.WORD_OWNER.get(number)
-            if owner is not None:
-                raise DriveError(f'register {number} is the second word of {owner}; use '
-                                 f'address {owner.address} with data type {owner.dtype}')
-            raise DriveError(f'register {number} is not in the X-PLUS MT register map '
-                             f'(manual App.1)')
-        if int(dtype[1:]) != 16 * reg.words:
-            raise DriveError(f'{reg} is {reg.dtype}: data type {dtype} does not match its '
-                             f'{16 * reg.words} bits')
-        if write and not reg.writable:
-            raise DriveError(f'{reg} is read-only ({reg.access})')
-        return reg
-
     def read_register(self, address: str, data_type: str) -> int:
-        reg = self._raw_register(address, data_type, write=False)
+        reg = parse_raw_register(_RAW_REGISTERS, address, data_type, write=False)
         words = self._read_words(reg.address, reg.words)
         signed = data_type.lower().startswith('i')
         if reg.words == 2:
@@ -595,7 +561,7 @@ class XplusMtDrive(Drive):
         return words[0] - 0x10000 if signed and words[0] & 0x8000 else words[0]
 
     def write_register(self, address: str, data_type: str, value: int) -> None:
-        reg = self._raw_register(address, data_type, write=True)
+        reg = parse_raw_register(_RAW_REGISTERS, address, data_type, write=True)
         value = register_type(data_type).check(int(value))
         # data_type says how to read `value`; the range is the register's own (e.g. i16 -2 on
         # a u16 register is the word 0xFFFE = 65534).

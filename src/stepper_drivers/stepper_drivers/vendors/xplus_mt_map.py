@@ -15,64 +15,20 @@ LE/BE columns).
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 from typing import Sequence
 
+from ..protocol.modbus import Register
+
 logger = logging.getLogger(__name__)
-
-_DTYPE_WORDS = {'u16': 1, 'i16': 1, 'u32': 2, 'i32': 2}
-
-
-@dataclasses.dataclass(frozen=True)
-class Register:
-    name: str          # UPPER_SNAKE from the manual, e.g. 'STATUS_WORD', 'TARGET_POSITION'
-    address: int       # entity (PDU) address; for 32-bit values the lower address of the pair
-    dtype: str         # 'u16' | 'i16' | 'u32' | 'i32' (U8 parameters take a whole u16 register)
-    access: str        # 'RO' | 'RW' | 'WO'
-    default: int
-    min: int
-    max: int
-    storable: bool     # saved by 0x6173 in 1260 (App.1 '**')
-    unit: str          # 'steps', 'Hz', 'Hz/s', 'ms', ''...
-    # Where the manual lists discrete values only (signatures, codes), the values a write may
-    # carry; empty = any value in min..max.
-    allowed: tuple[int, ...] = ()
-
-    @property
-    def words(self) -> int:
-        return _DTYPE_WORDS[self.dtype]
-
-    @property
-    def signed(self) -> bool:
-        return self.dtype.startswith('i')
-
-    @property
-    def writable(self) -> bool:
-        return self.access in ('RW', 'WO')
-
-    def accepts(self, value: int) -> bool:
-        """True when `value` is a value this register may be written with."""
-        if self.allowed:
-            return value in self.allowed
-        return self.min <= value <= self.max
-
-    def range_text(self) -> str:
-        if self.allowed:
-            return 'one of ' + ', '.join(_fmt(v, self) for v in self.allowed)
-        return f'{_fmt(self.min, self)}..{_fmt(self.max, self)}'
-
-    def __str__(self) -> str:
-        return f'{self.name} ({self.address})'
-
-
-def _fmt(value: int, reg: Register) -> str:
-    return f'0x{value:04X}' if reg.unit in ('bitfield', 'signature', 'code') else str(value)
 
 
 def _r(address, name, dtype, access, default, lo, hi, unit='', storable=False, allowed=()):
-    return Register(name=name, address=address, dtype=dtype, access=access, default=default,
-                    min=lo, max=hi, storable=storable, unit=unit, allowed=tuple(allowed))
+    """One App.1 row: `access` as App.1 prints it ('RO', 'RW'); `storable`: App.1 '**', saved by
+    0x6173 in 1260. A register's str() is 'NAME (address)', e.g. 'STATUS_WORD (1001)'."""
+    return Register(name=name, address=address, dtype=dtype, access=access.lower(),
+                    default=default, min=lo, max=hi, unit=unit, storable=storable,
+                    allowed=tuple(allowed))
 
 
 I32_MIN, I32_MAX = -(1 << 31), (1 << 31) - 1

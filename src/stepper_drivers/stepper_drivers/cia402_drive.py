@@ -1,0 +1,206 @@
+"""The drive skeleton every CiA 402 vendor shares; no transport, no rclpy.
+
+`Cia402Drive` is a `drive.Drive` whose controlword and statusword follow CiA 402: the R.T.A.
+X-PLUS MT (Modbus holding registers 1040/1001) and the AEC Vector Step (CANopen 0x6040/0x6041 by
+RxPDO/TxPDO). Written once here, on `cia402.Cia402Device`: the power stage (enable, disable), the
+preconditions of a motion command (`_require_enabled`, `_ensure_mode`) and the fault reset. A
+vendor class gives its object access (`_read_statusword`, `_write_controlword` and how it reads
+and writes the mode and the target) and its quirks through the hook methods below, each named
+for the step of the skeleton it takes.
+
+A hook typed `X | Steps[X]` may be step-wise (`drive.Steps`) or return at once: the skeleton runs
+it either way, so a vendor that needs no transaction there adds no step.
+"""
+
+from __future__ import annotations
+
+import abc
+from typing import Any, Mapping, TypeVar
+
+from . import cia402
+from .cia402 import FAULT_STATES
+from .drive import Bus, Drive, DriveError, State, Steps, is_steps
+
+T = TypeVar('T')
+
+
+def _run(result: T | Steps[T]) -> Steps[T]:
+    """A hook's result: its steps run here when it is step-wise, else the value as it is."""
+    if is_steps(result):
+        return (yield from result)
+    return result
+
+
+class Cia402Drive(Drive):
+    """Enable, disable, `_require_enabled`, `_ensure_mode` and fault reset of a CiA 402 drive.
+
+    The vendor sets the class attributes where its manual gives other values and implements the
+    abstract hooks; the hooks with a body here do nothing unless overridden.
+    """
+
+    # Controlword write -> first statusword read that checks its effect
+    # (Cia402Device.min_delay_s).
+    CW_SW_DELAY_S = 0.012
+    # Statusword poll interval while the walker waits (Cia402Device.POLL_S).
+    STATUSWORD_POLL_S = cia402.Cia402Device.POLL_S
+    ENABLE_TIMEOUT_S = 1.0           # the whole walk to OPERATION ENABLED
+    DISABLE_TIMEOUT_S = 1.0          # the whole walk to SWITCH ON DISABLED
+    FAULT_RESET_TIMEOUT_S = 1.0      # one fault-reset edge and the wait for FAULT to end
+    FAULT_RESET_ATTEMPTS = 1         # edges tried, each after _before_fault_reset(attempt)
+    HANDSHAKE_TIMEOUT_S = 0.5        # new set point -> set-point acknowledge (statusword bit 12)
+    MODE_SWITCH_TIMEOUT_S = 0.5      # modes of operation written -> its display shows it
+    # True: a statusword read is a transaction of its own (an FC03): the skeleton ends the step
+    # after it, so that the next transaction goes in a step of its own. False: the statusword
+    # comes from a cache (TxPDOs) and costs no transaction.
+    STATUSWORD_READ_IS_TRANSACTION = False
+    # States disable() leaves as they are, writing nothing.
+    DISABLE_LEAVES: tuple[State, ...] = FAULT_STATES
+    # _require_enabled's refusal; {what}: the command, {state}: cia402.describe(statusword).
+    NOT_ENABLED_TEXT = '{what}: drive is in {state}, not OPERATION ENABLED; enable first'
+
+    def __init__(self, bus: Bus, name: str, params: Mapping[str, Any]):
+        super().__init__(bus, name, params)
+        self.cia = cia402.Cia402Device(self._read_statusword, self._write_controlword,
+                                       min_delay_s=self.CW_SW_DELAY_S, name=name)
+        self.cia.POLL_S = self.STATUSWORD_POLL_S
+
+    # ------------------------------------------------------------------ object access
+    @abc.abstractmethod
+    def _read_statusword(self) -> int:
+        """The statusword (0x6041; X-PLUS MT register 1001)."""
+
+    @abc.abstractmethod
+    def _write_controlword(self, cw: int) -> None:
+        """One controlword write (0x6040; X-PLUS MT register 1040)."""
+
+    def _end_read_step(self) -> Steps[None]:
+        """End the step after a statusword read that was a transaction (see
+        STATUSWORD_READ_IS_TRANSACTION); nothing after a cached one."""
+        if self.STATUSWORD_READ_IS_TRANSACTION:
+            yield 0.0
+
+    # ------------------------------------------------------------------ power stage
+    def enable(self) -> Steps[None]:
+        """OPERATION ENABLED without moving. Refused in FAULT (`_enable_refusal` says why);
+        otherwise the vendor holds the position (`_hold_position`: target = actual position,
+        profile position mode), checks what its manual wants on the way (`_before_switch_on`),
+        then the walk of cia402's tables; a walk that sticks is explained by `_enable_failed`."""
+        sw = self._read_statusword()
+        state = cia402.decode_state(sw)
+        if state in FAULT_STATES:
+            text = yield from _run(self._enable_refusal(sw))
+            raise DriveError(f'{text}; call fault_reset first')
+        if state == State.OPERATION_ENABLED:
+            self._enabled(switched_on=False)
+            return
+        yield from self._end_read_step()
+        yield from _run(self._hold_position(state))
+        yield from _run(self._before_switch_on(state))
+        try:
+            yield from self.cia.bring_to(State.OPERATION_ENABLED, self.ENABLE_TIMEOUT_S)
+        except DriveError as exc:
+            yield from self._end_read_step()
+            yield from _run(self._enable_failed(exc))
+            raise
+        self._enabled(switched_on=True)
+
+    @abc.abstractmethod
+    def _enable_refusal(self, sw: int) -> str | Steps[str]:
+        """What enable() tells about the fault in `sw` (the fault and its code); enable adds
+        '; call fault_reset first'."""
+
+    @abc.abstractmethod
+    def _hold_position(self, state: State) -> None | Steps[None]:
+        """Nothing moves once enabled: target position = actual position, profile position
+        mode (`state`: the state enable() starts from)."""
+
+    def _before_switch_on(self, state: State) -> None | Steps[None]:
+        """What the vendor checks before the walk to OPERATION ENABLED; raises DriveError."""
+
+    def _enable_failed(self, exc: DriveError) -> None | Steps[None]:
+        """The walk to OPERATION ENABLED stuck (`exc`): raise a DriveError that says why, or
+        return to let `exc` go up as it is."""
+
+    def _enabled(self, switched_on: bool) -> None:
+        """The drive is in OPERATION ENABLED; `switched_on`: enable() brought it there (False:
+        it was there already)."""
+
+    def disable(self) -> Steps[None]:
+        """SWITCH ON DISABLED (current off), except from DISABLE_LEAVES."""
+        state = cia402.decode_state(self._read_statusword())
+        self._disabling()
+        if state in self.DISABLE_LEAVES:
+            return
+        yield from self._end_read_step()
+        yield from self.cia.bring_to(State.SWITCH_ON_DISABLED, self.DISABLE_TIMEOUT_S)
+        self._disabled()
+
+    def _disabling(self) -> None:
+        """disable() has read the state; called before anything is written."""
+
+    def _disabled(self) -> None:
+        """disable() brought the drive to SWITCH ON DISABLED."""
+
+    # ------------------------------------------------------------------ motion preconditions
+    def _require_enabled(self, what: str) -> int | None:
+        """DriveError unless the drive is in OPERATION ENABLED, as `_statusword_for_motion`
+        reads it; returns the modes of operation display that read gave (None: it gives
+        none), for `_ensure_mode`."""
+        sw, mode = self._statusword_for_motion()
+        if cia402.decode_state(sw) != State.OPERATION_ENABLED:
+            raise DriveError(self.NOT_ENABLED_TEXT.format(what=what,
+                                                          state=cia402.describe(sw)))
+        return mode
+
+    @abc.abstractmethod
+    def _statusword_for_motion(self) -> tuple[int, int | None]:
+        """(statusword, modes of operation display or None) checked before a motion command."""
+
+    def _ensure_mode(self, mode: int, what: str = '', current: int | None = None
+                     ) -> Steps[None]:
+        """Modes of operation = `mode`, unless the drive is in it already (`_in_mode`).
+        `what`: the command, for messages; `current`: what `_require_enabled` returned just
+        before (the step that read it)."""
+        yield from self._end_read_step()
+        if self._in_mode(mode, current):
+            return
+        yield from self._switch_mode(mode, what, current)
+
+    @abc.abstractmethod
+    def _in_mode(self, mode: int, current: int | None = None) -> bool:
+        """The drive is in `mode` (`current`: as in _ensure_mode)."""
+
+    @abc.abstractmethod
+    def _switch_mode(self, mode: int, what: str, current: int | None) -> Steps[None]:
+        """Write modes of operation = `mode` and wait until the drive shows it; DriveError when
+        it does not."""
+
+    @property
+    def motion_sent_t(self) -> float | None:
+        """The new set point's write (controlword bit 4 up: the drive starts then)."""
+        return self.cia.set_point_sent_t
+
+    # ------------------------------------------------------------------ maintenance
+    def fault_reset(self) -> Steps[str]:
+        """Up to FAULT_RESET_ATTEMPTS fault-reset edges (Cia402Device.fault_reset), each after
+        `_before_fault_reset`; '' once the drive is out of FAULT (`_fault_cleared`), else what
+        `_fault_remains` says."""
+        sw = 0
+        for attempt in range(self.FAULT_RESET_ATTEMPTS):
+            yield from _run(self._before_fault_reset(attempt))
+            sw = yield from self.cia.fault_reset(self.FAULT_RESET_TIMEOUT_S)
+            if cia402.decode_state(sw) not in FAULT_STATES:
+                self._fault_cleared(sw)
+                return ''
+        return (yield from _run(self._fault_remains(sw)))
+
+    def _before_fault_reset(self, attempt: int) -> None | Steps[None]:
+        """What the vendor's manual does before fault-reset edge number `attempt` (from 0)."""
+
+    def _fault_cleared(self, sw: int) -> None:
+        """The fault reset worked: `sw` is the statusword out of FAULT."""
+
+    @abc.abstractmethod
+    def _fault_remains(self, sw: int) -> str | Steps[str]:
+        """fault_reset()'s answer when the drive is still in FAULT after the last edge (`sw`):
+        the fault and that its cause is still present."""
