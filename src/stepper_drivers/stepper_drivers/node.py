@@ -140,7 +140,12 @@ class DriveHandle:
 
 class DriveNode(Node):
     """The plain node: built, connected and publishing from the start. With `managed` (the
-    lifecycle variant, lifecycle_node.py) the buses and interfaces wait for on_configure."""
+    lifecycle variant, lifecycle_node.py) the buses and interfaces wait for on_configure.
+
+    What node_trajectory.TrajectoryInterface uses of it: `handles`, `accepting`, `handling()`,
+    `await_future()`, `published()`, `command_qos`, `cmd_group` and the rclpy Node API."""
+
+    command_qos = COMMAND_QOS
 
     def __init__(self, vendor: Vendor, node_name: str, config_loader: Callable[[Node], BusConfig],
                  managed: bool = False):
@@ -715,7 +720,8 @@ class DriveNode(Node):
                 self.command_velocity(h, msg.velocity[i])
 
     # --------------------------------------------------------------- waiting without a thread
-    async def _await(self, fut: concurrent.futures.Future, timeout_s: float | None = None):
+    async def await_future(self, fut: concurrent.futures.Future,
+                           timeout_s: float | None = None):
         """Await an owner-thread future in an async callback; a job still queued when
         timeout_s passes is dropped (one that started is awaited: it ends by itself)."""
         ros_fut = RosFuture(executor=self.executor)
@@ -735,7 +741,7 @@ class DriveNode(Node):
         then answers, rather than loop on polls that will not come."""
         fut: concurrent.futures.Future = concurrent.futures.Future()
         h.sup.wait_poll(h.name, timeout_s, fut.set_result)
-        fresh = await self._await(fut)
+        fresh = await self.await_future(fut)
         if not fresh and h.sup.stopping:
             raise Cancelled('the node is shutting down')
         return fresh
@@ -763,13 +769,13 @@ class DriveNode(Node):
             futs.append(fut)
         published = True
         for h, fut in zip(handles, futs):
-            published = await self._await(fut) and published
+            published = await self.await_future(fut) and published
             if not published and h.sup.stopping:
                 raise Cancelled('the node is shutting down')
         return published
 
     async def _run_job(self, h: DriveHandle, command: Command) -> Any:
-        return await self._await(h.sup.submit(h.name, command,
+        return await self.await_future(h.sup.submit(h.name, command,
                                               hand_over=command.kind == JobKind.URGENT),
                                  JOB_TIMEOUT_S)
 
@@ -866,7 +872,7 @@ class DriveNode(Node):
             if h.slot.identity_recheck:
                 # not driven for its identity: checked again now (a connect, nothing moves)
                 try:
-                    await self._await(h.sup.recheck(h.name))
+                    await self.await_future(h.sup.recheck(h.name))
                 except Cancelled:
                     raise
                 except DriveError as e:

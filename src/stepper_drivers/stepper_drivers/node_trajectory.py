@@ -48,9 +48,8 @@ class TrajectoryInterface:
     def __init__(self, node: 'DriveNode'):
         self.node = node
         self.follower = Follower({})
-        from .node import COMMAND_QOS      # (node.py imports this module)
         node.create_subscription(JointTrajectory, '~/joint_trajectory', self.on_trajectory,
-                                 COMMAND_QOS, callback_group=node.cmd_group)
+                                 node.command_qos, callback_group=node.cmd_group)
 
         async def execute(goal_handle):
             with node.handling():                # answered before the node ends
@@ -261,7 +260,7 @@ class TrajectoryInterface:
             self._feedback(run, fb)
             goal_handle.publish_feedback(fb)
             await self._sleep(FEEDBACK_PERIOD_S, run.done)
-        outcome = await self.node._await(run.done)
+        outcome = await self.node.await_future(run.done)
         # answered once joint_states and the statuses of the joints' drives that show the end
         # went out: a client (MoveIt's start state of the next plan) reads them after this
         try:
@@ -311,4 +310,4 @@ class TrajectoryInterface:
                     pass
         done.add_done_callback(fire)
         self.node.supervisors[0].after(seconds, fire)
-        await self.node._await(wake)
+        await self.node.await_future(wake)
