@@ -95,8 +95,8 @@ def test_both_setup_py_make_the_console_scripts_from_the_row(toy):
     tmp, _files = toy
     drivers = console_scripts(tmp / 'src/stepper_drivers/setup.py')
     sims = console_scripts(tmp / 'src/stepper_sim/setup.py')
-    assert drivers['toy_node'] == 'stepper_drivers.entry_points:toy_node'
-    assert drivers['toy_lifecycle_node'] == 'stepper_drivers.entry_points:toy_lifecycle_node'
+    assert drivers['toy_node'] == 'stepper_drivers.entry_points:main'
+    assert drivers['toy_lifecycle_node'] == 'stepper_drivers.entry_points:main'
     assert sims['toy_sim'] == 'stepper_sim.toy_sim:main'
     # and without the row, as the workspace is
     assert 'toy_node' not in console_scripts(ROOT / 'src/stepper_drivers/setup.py')
@@ -142,8 +142,8 @@ def installed(toy, monkeypatch):
 
 def test_the_executable_and_stepperctl_know_the_vendor(installed):
     _tmp, _toy, _sim, (entry_points, scan, main) = installed
-    assert callable(entry_points.toy_node) and entry_points.toy_node.__name__ == 'toy_node'
-    assert callable(entry_points.toy_lifecycle_node)
+    assert 'toy_node' in entry_points.BY_NODE                      # main() runs it by name
+    assert 'toy_lifecycle_node' in entry_points.BY_LIFECYCLE_NODE
     assert scan.NODE_NAMES['toy'] == 'toy_node' and scan.ADDRESS_NAMES['toy'] == 'address'
     assert 'toy' not in scan.SCANNERS            # no scan_help: no scanner needed
     args = main.build_parser().parse_args(['scan', 'rd4', '--port', 'x'])

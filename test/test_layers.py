@@ -187,7 +187,7 @@ def test_the_node_layer_finds_the_installed_eds_the_vendor_names():
     from stepper_drivers.params import BusConfig
     from stepper_drivers.vendors import vector_step
 
-    files = vector_step.SHARE_FILES
+    files = vector_step.VENDOR.share_files
     cfg = share_files(BusConfig({'can.eds_file': ''}, []), files)
     path = pathlib.Path(cfg.params['can.eds_file'])
     assert path.match('share/stepper_drivers/config/vector_step.eds'), path

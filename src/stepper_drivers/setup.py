@@ -10,9 +10,9 @@ HERE = os.path.dirname(os.path.realpath(__file__))
 # The vendor table, read as a file: setup.py imports neither the package nor rclpy.
 ROWS = runpy.run_path(os.path.join(HERE, 'stepper_drivers', 'vendor_table.py'))['ROWS']
 
-# Two console scripts per vendor (<key>_node, <key>_lifecycle_node), and stepperctl:
-# '<exe> = stepper_drivers.entry_points:<function>'.
-NODES = [n for row in ROWS for n in (row.node, row.lifecycle_node)] + ['stepperctl']
+# Two console scripts per vendor (<key>_node, <key>_lifecycle_node), both entry_points.main (the
+# name it is started under picks the vendor), and stepperctl.
+NODES = [n for row in ROWS for n in (row.node, row.lifecycle_node)]
 
 setup(
     name=package_name,
@@ -32,6 +32,7 @@ setup(
     description='ROS 2 nodes for four stepper drive product lines',
     license='Apache-2.0',
     entry_points={
-        'console_scripts': [f'{n} = stepper_drivers.entry_points:{n}' for n in NODES],
+        'console_scripts': [f'{n} = stepper_drivers.entry_points:main' for n in NODES]
+        + ['stepperctl = stepper_drivers.entry_points:stepperctl'],
     },
 )

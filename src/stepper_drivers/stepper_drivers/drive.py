@@ -324,9 +324,32 @@ class ParamSpec:
     read_only: bool = True
 
 
+class InterpolatingDrive(abc.ABC):
+    """A drive that can follow a stream of set points, one per period (CiA 402 interpolated
+    position): the trajectory follower (follow.py) streams to it instead of sending
+    point-to-point moves when `interpolation_period_s` is not None."""
+
+    @property
+    @abc.abstractmethod
+    def interpolation_period_s(self) -> float | None:
+        """The period set points are streamed at with the current settings; None: follow
+        trajectories point to point."""
+
+    @abc.abstractmethod
+    def start_interpolation(self, period_s: float) -> Steps[int]:
+        """Step-wise: enter the mode without moving; returns the position it holds [steps]."""
+
+    @abc.abstractmethod
+    def interpolation_point(self, position_steps: int) -> None:
+        """The next set point (once per period)."""
+
+
 @dataclasses.dataclass(frozen=True)
 class Vendor:
-    """What a vendor module gives the node layer: its parameters and two factories."""
+    """Everything a vendor module gives the node layer, in one object: its parameters, the two
+    factories, the check of a whole configuration and the files of the installed package its
+    parameters may name. Its capabilities beyond the Drive interface are interfaces its drive
+    class implements (InterpolatingDrive) or Drive attributes it sets (state_from_cache ...)."""
 
     name: str                      # e.g. 'X-PLUS MT'
     params: tuple[ParamSpec, ...]  # vendor bus and per-drive parameters
@@ -338,6 +361,12 @@ class Vendor:
     # that sets one ('' and 0 mean "as the bus-level parameter of the same name") gets a bus of
     # its own, with its own owner thread; drives with equal values share one bus.
     drive_bus_params: tuple[str, ...] = ()
+    # The check of a whole configuration (bus and every drive's params): one line per problem,
+    # naming the parameter. Run by the node at start-up, after the per-parameter checks.
+    validate: Callable[[Mapping[str, Any]], list[str]] = lambda params: []
+    # Parameters whose '' means a file of the installed stepper_drivers package (the node
+    # finds it through ROS's package index; without a node, the source tree's): {param: path}
+    share_files: Mapping[str, str] = dataclasses.field(default_factory=dict)
 
     def with_defaults(self, params: Mapping[str, Any]) -> dict[str, Any]:
         """One drive's `params` over this vendor's defaults: its bus-scope and drive-scope

@@ -1,6 +1,7 @@
-"""Executables: two functions per vendor, made from the vendor table (console scripts in
-setup.py): <key>_node, the plain node, and <key>_lifecycle_node, the managed variant
-(lifecycle_node.py) under the same node name. Vendor modules are imported only when used."""
+"""Executables: main() behind every node executable (console scripts in setup.py, two per row
+of the vendor table): <key>_node, the plain node, and <key>_lifecycle_node, the managed variant
+(lifecycle_node.py) under the same node name; and stepperctl(). Vendor modules are imported
+only when used."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import importlib
 import os
 import sys
 
-from .vendor_table import BY_LIFECYCLE_NODE, BY_NODE, ROWS
+from .vendor_table import BY_LIFECYCLE_NODE, BY_NODE
 
 
 def run(exe: str, argv: list[str] | None = None) -> int:
@@ -49,7 +50,7 @@ def run(exe: str, argv: list[str] | None = None) -> int:
     rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
     try:
         node = node_class(vendor, row.node, lambda n: share_files(
-            declare_all(n, vendor, argv, module.validate), getattr(module, 'SHARE_FILES', {})))
+            declare_all(n, vendor, argv, vendor.validate), vendor.share_files))
     except ParameterError as e:
         print(f'{exe}: {e}', file=sys.stderr, flush=True)
         rclpy.try_shutdown()
@@ -72,17 +73,15 @@ def share_files(cfg, files: dict[str, str]):
     return cfg
 
 
-def _executable(exe: str):
-    def main() -> None:
-        sys.exit(run(exe))
-    main.__name__ = main.__qualname__ = exe
-    main.__doc__ = f'The {exe} executable.'
-    return main
-
-
-for _row in ROWS:
-    globals()[_row.node] = _executable(_row.node)     # xplus_mt_node(), rd4_node(), ...
-    globals()[_row.lifecycle_node] = _executable(_row.lifecycle_node)
+def main() -> None:
+    """Every node executable (setup.py points each <key>_node and <key>_lifecycle_node here):
+    the name it was started under picks the vendor's row, so a new row needs no code here."""
+    exe = os.path.basename(sys.argv[0])
+    if exe not in BY_NODE and exe not in BY_LIFECYCLE_NODE:
+        names = ', '.join(sorted([*BY_NODE, *BY_LIFECYCLE_NODE]))
+        print(f'{exe}: not a node executable of the vendor table ({names})', file=sys.stderr)
+        sys.exit(2)
+    sys.exit(run(exe))
 
 
 def stepperctl() -> None:

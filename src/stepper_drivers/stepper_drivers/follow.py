@@ -28,7 +28,7 @@ import threading
 import time
 from typing import Callable
 
-from .drive import Drive, Motion, is_steps
+from .drive import Drive, InterpolatingDrive, Motion, is_steps
 from .commands import Command
 from .supervisor import BusSupervisor
 from .trajectory import (JointLimits, Segment, Trajectory, TrajectoryError, along, along_velocity,
@@ -80,7 +80,8 @@ class Axis:
     def interpolated(self) -> bool:
         """Its drive follows a stream of set points (Vector Step interpolated position at
         these settings), not point-to-point moves."""
-        return bool(getattr(self.drive, 'interpolation_period_s', None))
+        return isinstance(self.drive, InterpolatingDrive) and \
+            self.drive.interpolation_period_s is not None
 
     def position_steps(self) -> float:
         return float(self.sup.slots[self.drive_name].state.position_steps)

@@ -903,4 +903,5 @@ VENDOR = Vendor(
     make_bus=make_bus,
     make_drive=make_drive,
     drive_defaults={'steps_per_rev': 1024.0, 'homing.method': HOMING_METHOD_PRESET},
+    validate=validate,
 )

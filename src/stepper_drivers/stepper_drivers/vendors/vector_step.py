@@ -40,8 +40,9 @@ from typing import Any, Mapping
 from .. import cia402, param_rules
 from ..cia402 import CW_BIT_NEW_SET_POINT, CW_ENABLE_OPERATION
 from ..cia402_drive import Cia402Drive
-from ..drive import (Bus, DriveError, DriveState, Homing, HomingState, IdentityError, LinkError,
-                     Motion, ParamSpec, State, Steps, Vendor, register_type)
+from ..drive import (Bus, DriveError, DriveState, Homing, HomingState, IdentityError,
+                     InterpolatingDrive, LinkError, Motion, ParamSpec, State, Steps, Vendor,
+                     register_type)
 from ..protocol.canopen_link import (MASTER, POLL_S, CanBus, RemoteDrive, SdoAbortError, pack,
                                      unpack)
 from . import vector_step_map as vm
@@ -169,7 +170,7 @@ def validate(params: Mapping[str, Any]) -> list[str]:
             name, view, int(bus['can.master_heartbeat_ms']), float(bus['can.sync_period_s'])))
 
 
-class VectorStepDrive(Cia402Drive):
+class VectorStepDrive(Cia402Drive, InterpolatingDrive):
     """One Vector Step on a CAN bus (node-ID = parameter `node_id`)."""
 
     state_from_cache = True      # read_state: the TxPDO values (SDO only for faults, warnings)
@@ -1201,10 +1202,6 @@ def make_drive(bus: Bus, name: str, params: Mapping[str, Any]) -> VectorStepDriv
     return VectorStepDrive(bus, name, params)
 
 
-# Parameters whose '' means a file of the installed stepper_drivers package: the node layer
-# (entry_points.py) finds it through ROS's package index; without a node, the source tree's.
-SHARE_FILES = {'can.eds_file': vm.EDS_FILE}
-
-
 VENDOR = Vendor(name='AEC Vector Step', params=PARAMS, make_bus=make_bus, make_drive=make_drive,
-                drive_defaults={'steps_per_rev': 3200.0, 'homing.method': 35})
+                drive_defaults={'steps_per_rev': 3200.0, 'homing.method': 35},
+                validate=validate, share_files={'can.eds_file': vm.EDS_FILE})

@@ -1054,4 +1054,5 @@ VENDOR = drive.Vendor(
     make_bus=make_bus,
     make_drive=make_drive,
     drive_defaults={'steps_per_rev': 2000.0, 'homing.method': 3},   # RS D2 factory default
+    validate=validate,
 )

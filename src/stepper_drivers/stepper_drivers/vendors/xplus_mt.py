@@ -696,4 +696,5 @@ VENDOR = Vendor(
     # float: the common parameter steps_per_rev is a double (params.py)
     drive_defaults={'steps_per_rev': float(xm.STEPS_PER_REV), 'homing.method': 35},
     drive_bus_params=DRIVE_BUS_PARAMS,
+    validate=validate,
 )
