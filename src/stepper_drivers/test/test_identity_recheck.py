@@ -29,7 +29,7 @@ from stepper_sim.xplus_mt_sim import XplusMtDriveConfig, XplusMtSim
 
 from test_supervisor import Line, RATE_HZ, ScriptDrive
 from test_vector_step_drive import params as vector_step_params
-from test_xmind_k_driver import Rig as XmindKRig
+from test_xmind_k_drive import Rig as XmindKRig
 
 SETTINGS = {'publish_rate_hz': RATE_HZ, 'command_timeout_s': 0.3, 'reconnect_period_s': 0.05}
 AT = r'checked again at \d\d:\d\d:\d\d, in {:g} s; fault_reset checks at once'

@@ -26,7 +26,7 @@ from stepper_sim.socketcand_broker import SocketcandBroker
 
 from test_modbus_tcp_bus import ScriptedServer
 from test_vector_step_drive import params as vector_step_params
-from test_xmind_k_driver import OtherDevice, Rig as XmindKRig
+from test_xmind_k_drive import OtherDevice, Rig as XmindKRig
 
 
 def raised(call):
