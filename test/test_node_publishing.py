@@ -29,14 +29,14 @@ def test_stamps_are_the_system_time_or_the_simulated_time(ros):
     node = make_node('xplus_mt')
     try:
         before = time.time_ns()
-        stamp = node._stamp()
+        stamp = node.publishing.stamp()
         after = time.time_ns()
         assert before <= stamp.sec * 10**9 + stamp.nanosec <= after
     finally:
         node.destroy_node()
     node = make_node('xplus_mt', '-p', 'use_sim_time:=true')
     try:
-        stamp = node._stamp()          # no /clock yet: simulated time is 0
+        stamp = node.publishing.stamp()    # no /clock yet: simulated time is 0
         assert (stamp.sec, stamp.nanosec) == (0, 0)
     finally:
         node.destroy_node()
@@ -45,12 +45,12 @@ def test_stamps_are_the_system_time_or_the_simulated_time(ros):
 def test_diagnostics_values_are_reused_only_while_unchanged(ros):
     node = make_node('xplus_mt')
     try:
-        first = node._key_values('n: axis1', [('state', 'READY'), ('position', 0.5)])
-        second = node._key_values('n: axis1', [('state', 'READY'), ('position', 0.75)])
+        first = node.publishing.key_values('n: axis1', [('state', 'READY'), ('position', 0.5)])
+        second = node.publishing.key_values('n: axis1', [('state', 'READY'), ('position', 0.75)])
         assert second[0] is first[0]                      # unchanged: the same KeyValue
         assert second[1] is not first[1] and second[1].value == '0.75'
         assert first[1].value == '0.5'                    # a published one stays as sent
-        other = node._key_values('n: axis2', [('state', 'FAULT')])
+        other = node.publishing.key_values('n: axis2', [('state', 'FAULT')])
         assert other[0].value == 'FAULT' and other[0] is not first[0]
     finally:
         node.destroy_node()

@@ -13,6 +13,11 @@ import enum
 from typing import Any, Callable
 
 
+class CommandRefused(Exception):
+    """A command the node does not send to the drive (it failed the node's checks); str() is
+    the reason."""
+
+
 class JobKind(enum.Enum):
     URGENT = 'urgent'            # before everything: stop, quick stop, disable, watchdog stop
     COMMAND = 'command'          # in order per drive: enable, move, homing, fault reset

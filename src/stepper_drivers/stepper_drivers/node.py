@@ -11,14 +11,17 @@ turns ROS into jobs and snapshots into ROS:
   them, so the messages of one topic are handled in the order they arrived.
 - Services and actions are async callbacks: they enqueue a job and `await` its result (and then
   the polls they need) without holding an executor thread, so one SingleThreadedExecutor serves
-  the node and a stop is never queued behind a homing.
+  the node and a stop is never queued behind a homing (node_services.DriveServices).
 - The owner threads publish joint_states and status after each poll cycle of their bus, and
-  /diagnostics when it is due: the executor has no timer and sleeps until a command comes.
+  /diagnostics when it is due: the executor has no timer and sleeps until a command comes
+  (node_publishing.StatePublisher).
 - process.py runs the node: signals, the executor thread, the order of shutdown.
 
-One file: DriveNode is one rclpy Node; its interfaces, command checks, publishing and services
-share its handles, supervisors and callback groups (the trajectory interface is its own object,
-node_trajectory.TrajectoryInterface).
+DriveNode is one rclpy Node. This module holds its construction, parameters, command topics and
+their checks, the supervisors' callbacks, the awaiting of owner-thread futures and the shutdown.
+The services and actions, the publishing and the trajectory interface are objects of their own
+(node_services, node_publishing, node_trajectory), each created by the node and given it; they
+use only its public members (DriveNode's docstring lists which).
 """
 
 from __future__ import annotations
@@ -28,15 +31,10 @@ import contextlib
 import math
 import re
 import threading
-import time
 from typing import Any, Callable
 
-from builtin_interfaces.msg import Time as TimeMsg
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 import rclpy
-from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
-from rclpy.clock import ClockType
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -44,27 +42,17 @@ from rclpy.task import Future as RosFuture
 from rcl_interfaces.msg import SetParametersResult
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64
-from std_srvs.srv import SetBool, Trigger
-from stepper_drivers_msgs.action import Home, MoveTo
-from stepper_drivers_msgs.msg import DriveStatus
-from stepper_drivers_msgs.srv import ReadRegister, WriteRegister
 
-from .drive import (Drive, DriveError, DriveState, Homing, HomingState, Motion, RefusedError,
-                    Vendor)
-from .joint_state_cdr import JointStateCdr
+from .drive import Drive, DriveError, DriveState, Homing, Motion, Vendor
 from .params import BusConfig, DriveConfig, ParameterError, current_values
+from .node_publishing import StatePublisher, settle
+from .node_services import DriveServices
 from .node_trajectory import TrajectoryInterface
-from .commands import Command, JobKind
+from .commands import Command, CommandRefused
 from .supervisor import BusSupervisor, Cancelled, Slot, Superseded
 
-# Position tolerance for "target reached" in a MoveTo action, in steps.
-TARGET_TOLERANCE_STEPS = 2
-# A MoveTo result is decided on this many consecutive snapshots that agree (standstill).
-SETTLED_POLLS = 2
 # On shutdown, how long a controlled stop may take before the power stage is disabled anyway.
 SHUTDOWN_STOP_TIMEOUT_S = 5.0
-# How long a service waits for its job; a job not started by then is dropped.
-JOB_TIMEOUT_S = 15.0
 
 
 # Command topics keep every sample (reliable, KEEP_ALL): a KEEP_LAST reader history fed by
@@ -76,10 +64,6 @@ COMMAND_QOS = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=Reliability
 
 # A number in a refusal's reason (the command's value, a limit, a code), masked to tell its kind.
 _NUMBER = re.compile(r'[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?|\b(?:nan|inf)\b')
-
-
-class CommandRefused(Exception):
-    """A command the node does not send to the drive; str() is the reason."""
 
 
 class DriveHandle:
@@ -142,8 +126,14 @@ class DriveNode(Node):
     """The plain node: built, connected and publishing from the start. With `managed` (the
     lifecycle variant, lifecycle_node.py) the buses and interfaces wait for on_configure.
 
-    What node_trajectory.TrajectoryInterface uses of it: `handles`, `accepting`, `handling()`,
-    `await_future()`, `published()`, `command_qos`, `cmd_group` and the rclpy Node API."""
+    What its parts use of it, besides the rclpy Node API:
+    - node_trajectory.TrajectoryInterface: `by_joint`, `accepting`, `lifecycle_state_label()`,
+      `handling()`, `await_future()`, `published()`, `supervisors`, `log`, `command_qos`,
+      `cmd_group`, `srv_group`.
+    - node_services.DriveServices: `refuse()`, `check_link()`, `check_position()`,
+      `await_future()`, `published()`, `handling()`, `srv_group`, `log`.
+    - node_publishing.StatePublisher: `handles`, `supervisors`, `bus_params`, `vendor`,
+      `managed` (a lifecycle publisher then)."""
 
     command_qos = COMMAND_QOS
 
@@ -164,14 +154,8 @@ class DriveNode(Node):
         self._interfaces = False
         self._identities: dict[tuple[str, str], str] = {}    # (key, value) -> drive
         self._identity_lock = threading.Lock()
-        self._js_lock = threading.Lock()       # joint_states: the owner threads take turns
-        self._js_cycled: set[int] = set()
-        self._js_due = 0.0
-        self._js_cdr: JointStateCdr | None = None     # the joint names, encoded once
-        self._js_handles: list[DriveHandle] = []
-        self._diag_lock = threading.Lock()     # /diagnostics: the owner threads take turns
-        self._diag_due = 0.0
-        self._diag_kv: dict[str, dict[str, KeyValue]] = {}     # status name -> key -> KeyValue
+        # what the owner threads publish (its publishers come with the interfaces)
+        self.publishing = StatePublisher(self)
         self._refusal_lock = threading.Lock()  # commands and services both count refusals
         self._handlers = 0                     # service and action callbacks running (handling)
         self._handlers_cv = threading.Condition()
@@ -197,8 +181,7 @@ class DriveNode(Node):
         self._identities.clear()
         self.supervisors = []
         self._build_buses()
-        with self._js_lock:
-            self._js_cdr = None
+        self.publishing.drives_rebuilt()
         self.by_joint = {h.cfg.joint_name: h for h in self.handles.values()}
         if not self._interfaces:
             self._make_interfaces()
@@ -208,19 +191,12 @@ class DriveNode(Node):
             self.log.info(f'{self.vendor.name} node on {sup.bus.description}: drives '
                           + ', '.join(f'{n} ({self.handles[n].cfg.joint_name})' for n in names))
 
-    def _publisher(self, msg_type, topic: str, qos):
-        if self.managed:      # publishes only while active (LifecycleNodeMixin manages it)
-            return self.create_lifecycle_publisher(msg_type, topic, qos)
-        return self.create_publisher(msg_type, topic, qos)
-
     def _make_interfaces(self) -> None:
         self.cmd_group = MutuallyExclusiveCallbackGroup()    # ordered, never waits
         self.srv_group = ReentrantCallbackGroup()            # async: awaits, holds no thread
-        reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
-        self.joint_pub = self._publisher(JointState, 'joint_states', reliable)
-        self.diag_pub = self._publisher(DiagnosticArray, '/diagnostics', 10)
+        self.publishing.create_publishers()
         self._command_subscription(JointState, 'joint_command', self.on_joint_command)
-        self.status_pubs = {}
+        self.drive_services = DriveServices(self)
         for h in self.handles.values():
             self._make_drive_interfaces(h)
         self.trajectories = TrajectoryInterface(self)
@@ -262,7 +238,7 @@ class DriveNode(Node):
                     self.handles[dcfg.name] = DriveHandle(self, dcfg, drive)
                 drives[dcfg.name] = drive
             sup = BusSupervisor(
-                bus, drives, self.bus_params, on_cycle=self.publish_states,
+                bus, drives, self.bus_params, on_cycle=self.publishing.publish_states,
                 on_connected=self._check_identity, on_event=self._on_event,
                 # managed: enabled at on_activate, not when the bus is configured
                 auto_enable=[] if self.managed else
@@ -298,37 +274,12 @@ class DriveNode(Node):
 
     def _make_drive_interfaces(self, h: DriveHandle) -> None:
         ns = f'~/{h.name}/'
-        self.status_pubs[h.name] = self.create_publisher(DriveStatus, ns + 'status', 10)
+        self.publishing.add_drive(h, ns)
         self._command_subscription(Float64, ns + 'position_command',
                                    lambda m, h=h: self.command_position(h, m.data))
         self._command_subscription(Float64, ns + 'velocity_command',
                                    lambda m, h=h: self.command_velocity(h, m.data))
-        srv = [(SetBool, 'enable', self.srv_enable), (Trigger, 'stop', self.srv_stop),
-               (Trigger, 'home', self.srv_home), (Trigger, 'fault_reset', self.srv_fault_reset),
-               (Trigger, 'save_params', self.srv_save_params),
-               (ReadRegister, 'read_register', self.srv_read_register),
-               (WriteRegister, 'write_register', self.srv_write_register)]
-        for srv_type, name, fn in srv:
-            async def callback(req, resp, h=h, fn=fn):
-                with self.handling():
-                    return await fn(h, req, resp)
-            self.create_service(srv_type, ns + name, callback, callback_group=self.srv_group)
-
-        async def move_to(goal, h=h):
-            with self.handling():
-                return await self.act_move_to(h, goal)
-
-        async def homing(goal, h=h):
-            with self.handling():
-                return await self.act_home(h, goal)
-        ActionServer(self, MoveTo, ns + 'move_to', execute_callback=move_to,
-                     goal_callback=lambda _req: GoalResponse.ACCEPT,
-                     cancel_callback=lambda _goal: CancelResponse.ACCEPT,
-                     callback_group=self.srv_group)
-        ActionServer(self, Home, ns + 'homing', execute_callback=homing,
-                     goal_callback=lambda _req: GoalResponse.ACCEPT,
-                     cancel_callback=lambda _goal: CancelResponse.ACCEPT,
-                     callback_group=self.srv_group)
+        self.drive_services.add_drive(h, ns)
 
     # ------------------------------------------------------------------- owner-side callbacks
     @property
@@ -353,7 +304,7 @@ class DriveNode(Node):
         the drives of its other buses: a node that no longer polls or watches some of its
         drives must not go on looking alive (a launch file's respawn restarts it)."""
         try:
-            self.publish_states(sup)
+            self.publishing.publish_states(sup)
         finally:
             self.on_fatal(f'{sup.name}: {why}')
 
@@ -388,206 +339,6 @@ class DriveNode(Node):
         for sup in self.supervisors:
             sup.start()
 
-    def publish_states(self, sup: BusSupervisor) -> None:
-        """Owner thread, after each poll cycle of its bus, and after a poll that a publish
-        waiter awaited (a service or action that changed the drive: `published`): then
-        joint_states and that drive's status go out now, whatever is due, and its waiters are
-        answered."""
-        handles = [self.handles[n] for n in sup.slots]
-        waiting = [h for h in handles if h.publish_waiters]
-        if not self.context.ok():
-            self._answer_publish_waiters(waiting, False)
-            return
-        stamp = None
-        now = time.monotonic()
-        if self._joint_states_due(sup, now) or waiting:
-            stamp = self._stamp()
-            self._publish_joint_states(stamp)
-        # A status goes out when something in it changed, and at status_rate_hz otherwise:
-        # at 50 Hz the messages of idle drives cost more CPU than polling them.
-        counters = None
-        for h in handles:
-            key = self._status_key(h)
-            if key == h.status_key and now < h.status_due and not h.publish_waiters:
-                continue
-            if counters is None:
-                counters = sup.bus.counters()
-            if stamp is None:
-                stamp = self._stamp()
-            self.status_pubs[h.name].publish(self._status_msg(h, stamp, counters))
-            h.status_key = key
-            h.status_due = now + 1.0 / self.bus_params['status_rate_hz']
-        self._answer_publish_waiters(waiting, True)
-        if now >= self._diag_due:
-            self._publish_diagnostics_due(now)
-
-    @staticmethod
-    def _answer_publish_waiters(handles: list[DriveHandle], published: bool) -> None:
-        for h in handles:
-            waiters, h.publish_waiters = h.publish_waiters, []
-            for fut in waiters:
-                _settle(fut, published)
-
-    def _publish_diagnostics_due(self, now: float) -> None:
-        """/diagnostics from the owner thread that finds it due, not from an executor timer:
-        each timer wake-up made rclpy rebuild its wait set over every service, action and
-        event handler of the node (3 ms with 8 drives) in the thread that takes the commands
-        (the CPU figures in docs/benchmarks.md)."""
-        with self._diag_lock:
-            if now < self._diag_due:          # another bus's owner was first
-                return
-            self._diag_due = now + 1.0 / self.bus_params['diagnostics_rate_hz']
-            self.publish_diagnostics()
-
-    def _stamp(self) -> TimeMsg:
-        """The node clock's now as a message. Without simulated time that is the system
-        clock, read directly: rclpy's Clock.now().to_msg() cost 60 us a cycle on the owner's
-        cold cache, half of it for a Time object thrown away."""
-        clock = self.get_clock()      # a node's clock is ROS_TIME: system time unless ...
-        if clock.clock_type != ClockType.ROS_TIME or clock.ros_time_is_active:
-            return clock.now().to_msg()            # ... use_sim_time: the /clock topic's time
-        ns = time.time_ns()
-        return TimeMsg(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
-
-    def _joint_states_due(self, sup: BusSupervisor, now: float) -> bool:
-        """One joint_states for the node's drives once every bus that has a connected drive
-        finished a cycle (a node with eight drive hosts publishes one message a period, not
-        eight), or a period after the last one (a bus whose drives are all lost)."""
-        with self._js_lock:
-            self._js_cycled.add(id(sup))
-            live = {id(s) for s in self.supervisors
-                    if any(slot.connected for slot in s.slots.values())}
-            if not (self._js_cycled >= live or now >= self._js_due):
-                return False
-            self._js_cycled = set()
-            self._js_due = now + 1.0 / self.bus_params['publish_rate_hz']
-            return True
-
-    def _publish_joint_states(self, stamp) -> None:
-        """One JointState for every drive of the node, as CDR bytes published raw (encoded
-        under _js_lock: owner threads of several buses take turns): rclpy's message path cost
-        about 100 us more per message on the owner's cold cache (joint_state_cdr.py; the
-        CPU figures in docs/benchmarks.md)."""
-        with self._js_lock:
-            cdr, handles = self._js_cdr, self._js_handles
-            if cdr is None:                      # (build() drops it)
-                handles = self._js_handles = list(self.handles.values())
-                cdr = self._js_cdr = JointStateCdr([h.cfg.joint_name for h in handles])
-            states = [h.slot.state for h in handles]
-            self.joint_pub.publish(cdr.encode(
-                stamp.sec, stamp.nanosec,
-                [h.conv.from_steps(s.position_steps) for h, s in zip(handles, states)],
-                [h.conv.from_steps(s.velocity_steps_s) if s.velocity_valid else math.nan
-                 for h, s in zip(handles, states)],
-                [float(s.effort) for s in states]
-                if all(s.effort is not None for s in states) else None))
-
-    def _status_key(self, h: DriveHandle) -> tuple:
-        """The status fields that make a new status worth sending (not the link counters)."""
-        s = h.state
-        return (s, h.slot.connected, h.slot.not_driven, h.commands_refused, h.last_refusal,
-                h.sup.watchdog_armed(h.name), h.sup.bus.health())
-
-    def _status_msg(self, h: DriveHandle, stamp, counters: dict[str, int]) -> DriveStatus:
-        s = h.state
-        m = DriveStatus()
-        m.header.stamp = stamp
-        m.drive, m.joint_name, m.vendor = h.name, h.cfg.joint_name, self.vendor.name
-        m.address = str(h.drive.address)
-        m.state = s.state.value
-        m.connected = h.connected
-        m.enabled, m.moving, m.target_reached = s.enabled, s.moving, s.target_reached
-        m.homed = s.homed
-        m.homing_state = s.homing.value
-        m.mode = s.mode
-        m.fault, m.fault_code, m.fault_text = s.fault, s.fault_code & 0xFFFFFFFF, s.fault_text
-        m.alarms = list(s.alarms)
-        link = h.sup.bus.health()
-        if link is not None:
-            m.alarms.append(link[1])
-        m.status_word = s.status_word & 0xFFFFFFFF
-        m.position_steps = int(s.position_steps)
-        m.velocity_steps_s = float(s.velocity_steps_s)
-        m.velocity_valid, m.position_estimated = s.velocity_valid, s.position_estimated
-        m.position, m.velocity = h.position, h.velocity
-        m.link_transactions = counters.get('transactions', 0) & 0xFFFFFFFF
-        m.link_errors = counters.get('errors', 0) & 0xFFFFFFFF
-        m.link_reconnects = max(h.slot.reconnects - 1, 0)
-        m.commands_refused, m.last_refusal = h.commands_refused, h.last_refusal
-        m.not_driven = h.slot.not_driven
-        m.watchdog_armed = h.sup.watchdog_armed(h.name)
-        return m
-
-    def publish_diagnostics(self) -> None:
-        """Under _diag_lock (an owner thread)."""
-        arr = DiagnosticArray()
-        arr.header.stamp = self._stamp()
-        for sup in self.supervisors:
-            names = list(sup.slots)
-            link = DiagnosticStatus(name=f'{self.get_name()}: link',
-                                    hardware_id=sup.bus.description)
-            if len(self.supervisors) > 1:
-                link.name += f' {sup.bus.description}'
-            lost = [n for n in names if not self.handles[n].connected]
-            if not lost:
-                link.level, link.message = DiagnosticStatus.OK, 'connected'
-            elif len(lost) < len(names):
-                link.level = DiagnosticStatus.WARN
-                link.message = f'{", ".join(lost)} DISCONNECTED, reconnecting'
-            else:
-                link.level, link.message = DiagnosticStatus.ERROR, 'DISCONNECTED, reconnecting'
-            health = sup.bus.health()
-            if health is not None:
-                level = DiagnosticStatus.ERROR if health[0] == 'error' else DiagnosticStatus.WARN
-                link.message = health[1] if link.level == DiagnosticStatus.OK else \
-                    f'{link.message}; {health[1]}'
-                link.level = max(link.level, level)
-            link.values = self._key_values(link.name, [
-                *sup.bus.counters().items(),
-                ('reconnects', sum(max(sup.slots[n].reconnects - 1, 0) for n in names))])
-            arr.status.append(link)
-        for h in self.handles.values():
-            s = h.state
-            d = DiagnosticStatus(name=f'{self.get_name()}: {h.name}',
-                                 hardware_id=f'{self.vendor.name} {h.drive.address}')
-            if h.slot.not_driven:
-                d.level, d.message = DiagnosticStatus.ERROR, f'not driven: {h.slot.not_driven}'
-            elif not h.connected:
-                d.level, d.message = DiagnosticStatus.ERROR, 'DISCONNECTED'
-            elif s.fault:
-                d.level = DiagnosticStatus.ERROR
-                d.message = f'FAULT 0x{s.fault_code:04X}: {s.fault_text}'
-            elif s.alarms or h.slot.last_error:
-                d.level = DiagnosticStatus.WARN
-                d.message = '; '.join(s.alarms) or h.slot.last_error
-            else:
-                d.level, d.message = DiagnosticStatus.OK, s.state.value
-            kv = {'state': s.state.value, 'joint': h.cfg.joint_name, 'enabled': s.enabled,
-                  'moving': s.moving, 'homed': s.homed, 'mode': s.mode,
-                  'position': f'{h.position:.6g}', 'position_steps': s.position_steps,
-                  'status_word': f'0x{s.status_word:04X}', 'fault_code': f'0x{s.fault_code:04X}',
-                  'fault_text': s.fault_text, 'commands_refused': h.commands_refused,
-                  'last_refusal': h.last_refusal,
-                  'velocity_watchdog': 'armed' if h.sup.watchdog_armed(h.name) else 'idle',
-                  **h.slot.identity}
-            d.values = self._key_values(d.name, kv.items())
-            arr.status.append(d)
-        self.diag_pub.publish(arr)
-
-    def _key_values(self, status: str, items) -> list[KeyValue]:
-        """KeyValues for (key, value) items, reusing those whose value is unchanged since the
-        last message (under _diag_lock). Built anew, the ~200 of 8 drives took 3.7 ms per
-        message."""
-        cache = self._diag_kv.setdefault(status, {})
-        out = []
-        for k, v in items:
-            v = str(v)
-            kv = cache.get(k)
-            if kv is None or kv.value != v:
-                kv = cache[k] = KeyValue(key=k, value=v)    # new: a published one stays as sent
-            out.append(kv)
-        return out
-
     # ------------------------------------------------------------------------------- commands
     def refuse(self, h: DriveHandle, why: str) -> None:
         """Count every refusal and keep its reason for the status; log the first of a run of
@@ -605,7 +356,7 @@ class DriveNode(Node):
             h.commands_refused += 1
         raise CommandRefused(why)
 
-    def _check_link(self, h: DriveHandle, what: str, safe: bool = False) -> None:
+    def check_link(self, h: DriveHandle, what: str, safe: bool = False) -> None:
         """`safe`: a stop, a disable or a read, taken in every lifecycle state."""
         if not self.accepting and not safe:
             self.refuse(h, f'{what}: the node is not active (lifecycle state '
@@ -616,7 +367,7 @@ class DriveNode(Node):
             self.refuse(h, f'{what}: drive is DISCONNECTED')
 
     def _check_ready(self, h: DriveHandle, what: str) -> None:
-        self._check_link(h, what)
+        self.check_link(h, what)
         if h.state.fault:
             self.refuse(h, f'{what}: drive is in FAULT 0x{h.state.fault_code:04X} '
                            f'({h.state.fault_text}); call fault_reset first')
@@ -629,7 +380,7 @@ class DriveNode(Node):
         if not math.isfinite(value):
             self.refuse(h, f'{what} {value} is not a finite number')
 
-    def _check_position(self, h: DriveHandle, what: str, position: float) -> int:
+    def check_position(self, h: DriveHandle, what: str, position: float) -> int:
         self._check_finite(h, what, position)
         lo, hi = h.param('min_position'), h.param('max_position')
         if not lo <= position <= hi:
@@ -664,7 +415,7 @@ class DriveNode(Node):
     def command_position(self, h: DriveHandle, position: float) -> None:
         what = 'position_command'
         try:
-            steps = self._check_position(h, what, position)
+            steps = self.check_position(h, what, position)
         except CommandRefused:
             return
         motion = h.motion()
@@ -735,17 +486,6 @@ class DriveNode(Node):
                              'earlier commands')
         return fut.result()
 
-    async def _next_poll(self, h: DriveHandle, timeout_s: float = 2.0) -> bool:
-        """Await the next snapshot of h (False: none within timeout_s, or the link is lost).
-        Raises Cancelled once the node shuts down: a service or action waiting for its drive
-        then answers, rather than loop on polls that will not come."""
-        fut: concurrent.futures.Future = concurrent.futures.Future()
-        h.sup.wait_poll(h.name, timeout_s, fut.set_result)
-        fresh = await self.await_future(fut)
-        if not fresh and h.sup.stopping:
-            raise Cancelled('the node is shutting down')
-        return fresh
-
     async def published(self, *handles: DriveHandle, timeout_s: float = 2.0) -> bool:
         """Await the next snapshot of each drive and its publication: /joint_states and the
         drive's status that carry it have gone out (False: no snapshot within timeout_s, or
@@ -759,13 +499,13 @@ class DriveNode(Node):
             def polled(fresh: bool, h=h, fut=fut) -> None:   # owner thread, after h's poll
                 if fresh:
                     h.publish_waiters.append(fut)
-                    self.publish_states(h.sup)     # now, not at the end of the cycle
+                    self.publishing.publish_states(h.sup)   # now, not at the end of the cycle
                 else:
-                    _settle(fut, False)
+                    settle(fut, False)
             h.sup.wait_poll(h.name, timeout_s, polled)
             h.sup.poll_soon(h.name)
             # no cycle within twice timeout_s (the bus shuts down: at once): not published
-            h.sup.after(2 * timeout_s, lambda fut=fut: _settle(fut, False))
+            h.sup.after(2 * timeout_s, lambda fut=fut: settle(fut, False))
             futs.append(fut)
         published = True
         for h, fut in zip(handles, futs):
@@ -773,227 +513,6 @@ class DriveNode(Node):
             if not published and h.sup.stopping:
                 raise Cancelled('the node is shutting down')
         return published
-
-    async def _run_job(self, h: DriveHandle, command: Command) -> Any:
-        return await self.await_future(h.sup.submit(h.name, command,
-                                              hand_over=command.kind == JobKind.URGENT),
-                                 JOB_TIMEOUT_S)
-
-    async def _respond(self, h: DriveHandle, resp, work, ok_message: Callable[[Any], str]):
-        """Await work(); fill a success/message response; errors become success=false."""
-        try:
-            result = await work()
-            resp.success, resp.message = True, ok_message(result)
-        except (CommandRefused, RefusedError, DriveError) as e:
-            resp.success, resp.message = False, f'{h.name}: {e}'
-            if not isinstance(e, CommandRefused):
-                self.log.warning(resp.message)
-        return resp
-
-    # ------------------------------------------------------------------------------- services
-    async def srv_enable(self, h: DriveHandle, req, resp):
-        async def work():
-            self._check_link(h, 'enable' if req.data else 'disable', safe=not req.data)
-            if req.data:
-                await self._run_job(h, Command.enable(h.drive.enable))
-            else:
-                await self._run_job(h, Command.disable(h.drive.disable))
-            await self.published(h)
-            return h.state.state.value
-        return await self._respond(h, resp, work, lambda st: f'{h.name}: {st}')
-
-    async def srv_stop(self, h: DriveHandle, req, resp):
-        async def work():
-            self._check_link(h, 'stop', safe=True)
-            await self._run_job(h, Command.stop(h.drive.stop))
-            await self.published(h)
-        return await self._respond(h, resp, work,
-                                   lambda _: f'{h.name}: stopping with the profile deceleration')
-
-    async def run_homing(self, h: DriveHandle, feedback: Callable[[], None] | None = None,
-                         cancelled: Callable[[], bool] = lambda: False) -> str:
-        self._check_link(h, 'home')
-        if h.state.fault:
-            self.refuse(h, f'home: drive is in FAULT 0x{h.state.fault_code:04X} '
-                           f'({h.state.fault_text}); call fault_reset first')
-        homing = h.homing()
-        note = await self._run_job(h, Command.homing(lambda: h.drive.start_homing(homing)))
-        timeout_s = h.param('homing.timeout_s')
-        deadline = self.get_clock().now().nanoseconds * 1e-9 + timeout_s
-        fresh = await self._next_poll(h)
-        idle_polls = 0         # snapshots in a row that say no homing runs (after its start)
-        while True:
-            st = h.state.homing
-            if st == HomingState.ATTAINED:
-                await self.published(h)
-                return (f'{h.name}: homed at {h.position:.6g} ({h.state.position_steps} steps)'
-                        + (f'; {note}' if note else ''))
-            if st == HomingState.ERROR or h.state.fault:
-                raise DriveError(f'homing failed (state {h.state.state.value}'
-                                 + (f', fault 0x{h.state.fault_code:04X} {h.state.fault_text}'
-                                    if h.state.fault else '')
-                                 + (f', alarms: {"; ".join(h.state.alarms)}'
-                                    if h.state.alarms else '') + ')')
-            if not h.connected:
-                raise DriveError('homing interrupted: link lost')
-            if cancelled():
-                await self._stop_quietly(h, 'homing cancelled')
-                raise DriveError('homing cancelled; drive stopped')
-            # The homing ended without a result: a stop (CiA 402 Halt: "interrupted"), a
-            # disable or another mode. Each vendor's start_homing returns once it runs, so
-            # IDLE now is no late start; SETTLED_POLLS fresh snapshots decide, as for move_to.
-            if st != HomingState.IDLE:
-                idle_polls = 0
-            elif fresh:
-                idle_polls += 1
-            if idle_polls >= SETTLED_POLLS:
-                raise DriveError(f'homing interrupted before it ended (state '
-                                 f'{h.state.state.value}, mode {h.state.mode}): a stop, a '
-                                 'disable or a mode change; not homed')
-            if self.get_clock().now().nanoseconds * 1e-9 > deadline:
-                await self._stop_quietly(h, 'homing timeout')
-                raise DriveError(f'homing timed out after {timeout_s:g} s (homing.timeout_s); '
-                                 'drive stopped')
-            if feedback:
-                feedback()
-            fresh = await self._next_poll(h, 1.0)
-
-    async def _stop_quietly(self, h: DriveHandle, why: str) -> None:
-        try:
-            await self._run_job(h, Command.stop(h.drive.stop, f'stop ({why})'))
-        except DriveError as e:
-            self.log.error(f'{h.name}: stop ({why}) failed: {e}')
-
-    async def srv_home(self, h: DriveHandle, req, resp):
-        return await self._respond(h, resp, lambda: self.run_homing(h), lambda msg: msg)
-
-    async def srv_fault_reset(self, h: DriveHandle, req, resp):
-        async def work():
-            if h.slot.identity_recheck:
-                # not driven for its identity: checked again now (a connect, nothing moves)
-                try:
-                    await self.await_future(h.sup.recheck(h.name))
-                except Cancelled:
-                    raise
-                except DriveError as e:
-                    if h.slot.not_driven:
-                        raise DriveError(f'still not driven: {h.slot.not_driven}') from None
-                    raise DriveError(f'checked again: {e}; DISCONNECTED, reconnecting') from None
-                await self.published(h)
-                return f'the identity matches again: driven, state {h.state.state.value}'
-            self._check_link(h, 'fault_reset')
-            remaining = await self._run_job(h, Command.fault_reset(h.drive.fault_reset))
-            await self.published(h)
-            if remaining:
-                raise DriveError(f'fault remains: {remaining}')
-            return f'fault cleared, state {h.state.state.value}'
-        return await self._respond(h, resp, work, lambda text: f'{h.name}: {text}')
-
-    async def srv_save_params(self, h: DriveHandle, req, resp):
-        async def work():
-            self._check_link(h, 'save_params')
-            return await self._run_job(h, Command.maintenance(h.drive.save_params,
-                                                              'save_params'))
-        return await self._respond(h, resp, work, lambda note: f'{h.name}: parameters saved'
-                                   + (f'; {note}' if note else ''))
-
-    async def srv_read_register(self, h: DriveHandle, req, resp):
-        resp.value, resp.text = 0, ''
-
-        async def work():
-            self._check_link(h, 'read_register', safe=True)
-            value = await self._run_job(h, Command.maintenance(
-                lambda: h.drive.read_register(req.address, req.data_type),
-                f'read_register {req.address}'))
-            if isinstance(value, str):
-                resp.text = value
-            else:
-                resp.value = int(value)
-            return value
-        return await self._respond(h, resp, work,
-                                   lambda v: f'{req.address} ({req.data_type}) = {v}')
-
-    async def srv_write_register(self, h: DriveHandle, req, resp):
-        value = req.text if req.data_type.lower() == 'string' else req.value
-
-        async def work():
-            if not h.param('allow_raw_write'):
-                self.refuse(h, f'write_register {req.address}: raw writes are disabled '
-                               f'(set drives.{h.name}.allow_raw_write: true)')
-            self._check_link(h, 'write_register')
-            await self._run_job(h, Command.raw_write(
-                lambda: h.drive.write_register(req.address, req.data_type, value),
-                f'write_register {req.address}'))
-        return await self._respond(h, resp, work,
-                                   lambda _: f'{req.address} ({req.data_type}) := {value}')
-
-    # -------------------------------------------------------------------------------- actions
-    async def act_move_to(self, h: DriveHandle, goal_handle):
-        result = MoveTo.Result()
-        target = goal_handle.request.position
-        try:
-            steps = self._check_position(h, 'move_to', target)
-            motion = h.motion()
-            await self._run_job(h, Command.move(lambda: h.drive.move_to(steps, motion),
-                                                f'move_to {target}'))
-            fb = MoveTo.Feedback()
-            settled, last = 0, None
-            await self._next_poll(h)
-            while True:
-                fresh = await self._next_poll(h, 1.0)
-                if not fresh and not h.connected:
-                    raise DriveError('move aborted: link lost')
-                s = h.state
-                if s.fault:
-                    raise DriveError(f'move aborted: state {s.state.value} {s.fault_text}'.strip())
-                if goal_handle.is_cancel_requested:
-                    await self._stop_quietly(h, 'move_to cancelled')
-                    goal_handle.canceled()
-                    result.message, result.final_position = 'cancelled; drive stopped', h.position
-                    return result
-                # decided on SETTLED_POLLS snapshots in a row that agree: standstill at one
-                # position (one snapshot may mix an old position with a new status)
-                still = not s.moving and (s.target_reached or abs(
-                    s.position_steps - steps) <= TARGET_TOLERANCE_STEPS)
-                if fresh:     # a snapshot counts once
-                    settled = settled + 1 if still and last == s.position_steps else int(still)
-                    last = s.position_steps
-                if settled >= SETTLED_POLLS:
-                    if abs(s.position_steps - steps) <= TARGET_TOLERANCE_STEPS:
-                        break
-                    raise DriveError(f'drive stopped at {h.position:.6g}, not at {target:.6g}')
-                fb.position, fb.state = h.position, s.state.value
-                fb.distance_remaining = target - h.position
-                goal_handle.publish_feedback(fb)
-            await self.published(h)
-            goal_handle.succeed()
-            result.success, result.message = True, f'{h.name}: at {h.position:.6g}'
-        except (CommandRefused, DriveError) as e:
-            goal_handle.abort()
-            result.success, result.message = False, f'{h.name}: {e}'
-        result.final_position = h.position
-        return result
-
-    async def act_home(self, h: DriveHandle, goal_handle):
-        result = Home.Result()
-        fb = Home.Feedback()
-
-        def feedback():
-            fb.homing_state, fb.position = h.state.homing.value, h.position
-            goal_handle.publish_feedback(fb)
-        try:
-            result.message = await self.run_homing(
-                h, feedback, lambda: goal_handle.is_cancel_requested)
-            result.success = True
-            goal_handle.succeed()
-        except (CommandRefused, DriveError) as e:
-            result.success, result.message = False, f'{h.name}: {e}'
-            if goal_handle.is_cancel_requested:
-                goal_handle.canceled()
-            else:
-                goal_handle.abort()
-        result.final_position = h.position
-        return result
 
     # ----------------------------------------------------------------------------- parameters
     def on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
@@ -1047,15 +566,6 @@ class DriveNode(Node):
             t.start()
         for t in threads:
             t.join()
-
-
-def _settle(fut: concurrent.futures.Future, value: Any) -> None:
-    """Resolve fut with value unless it is resolved already (a timer and the owner may race)."""
-    try:
-        if not fut.done():
-            fut.set_result(value)
-    except concurrent.futures.InvalidStateError:
-        pass
 
 
 def _spin_commands(executor) -> None:
