@@ -15,6 +15,7 @@ from test_rd4_ros import Bench as Rd4Bench
 from test_xplus_mt_ros import Bench as XplusBench
 
 SOD_MASK, SOD = 0x004F, 0x0040          # CiA 402 status word: SWITCH ON DISABLED
+STATUS_RATE_HZ = 1.0                    # status_rate_hz: config/xplus_mt.yaml leaves the default
 
 
 class XplusLifecycle(XplusBench):
@@ -49,10 +50,13 @@ class XplusLifecycle(XplusBench):
 
     def joint_states_within(self, seconds):
         """Whether a joint_states message arrives within `seconds`."""
+        return self.message_within('/joint_states', seconds)
+
+    def message_within(self, topic, seconds):
         with self.ros.lock:
-            self.ros.latest.pop('/joint_states', None)
+            self.ros.latest.pop(topic, None)
         try:
-            self.ros.wait_msg('/joint_states', timeout_s=seconds)
+            self.ros.wait_msg(topic, timeout_s=seconds)
             return True
         except AssertionError:
             return False
@@ -73,6 +77,8 @@ def test_configure_activate_deactivate_cleanup_shutdown(managed):
     assert managed.state().id == State.PRIMARY_STATE_INACTIVE
     managed.node.wait_line('configured: axis1 SWITCH ON DISABLED', 5.0)
     assert not managed.joint_states_within(5 * period_s)      # inactive: nothing published
+    status = f'{managed.node_ns}/axis1/status'                # at least once per status period
+    assert not managed.message_within(status, 1.5 / STATUS_RATE_HZ)     # when active
     r = managed.call('axis1', 'enable', SetBool.Request(data=True), SetBool)
     assert not r.success and 'not active (lifecycle state inactive)' in r.message
     assert managed.statusword() & SOD_MASK == SOD             # and the drive was not enabled
@@ -80,6 +86,7 @@ def test_configure_activate_deactivate_cleanup_shutdown(managed):
     assert managed.change(Transition.TRANSITION_ACTIVATE)
     assert managed.state().id == State.PRIMARY_STATE_ACTIVE
     assert managed.joint_states_within(1.0)
+    assert managed.message_within(status, 1.5 / STATUS_RATE_HZ)
     managed.enable('axis1')
     managed.command('axis1', 'velocity_command', 3.0)
     managed.status('axis1', lambda m: m.moving, what='running')

@@ -61,7 +61,7 @@ class StatePublisher:
 
     def add_drive(self, h: 'DriveHandle', ns: str) -> None:
         """The status publisher of drive h, under the namespace ns (`~/<drive>/`)."""
-        self.status_pubs[h.name] = self.node.create_publisher(DriveStatus, ns + 'status', 10)
+        self.status_pubs[h.name] = self._publisher(DriveStatus, ns + 'status', 10)
 
     def drives_rebuilt(self) -> None:
         """The node built its drives again: the joint names are encoded anew."""
