@@ -103,6 +103,13 @@ class Job:
     polled: bool = False
     taken: threading.Event | None = None   # set when the owner takes it (see submit's hand_over)
 
+    @classmethod
+    def of(cls, drive: str, command: Command, enqueued_t: float, arm_seq: int = 0) -> 'Job':
+        """The job of `command` for `drive`, with a future of its own."""
+        return cls(drive, command.kind, command.fn, command.label, concurrent.futures.Future(),
+                   command.topic, command.disarms, command.motion, enqueued_t, arm_seq,
+                   command.polled)
+
     def preempted_by(self, urgent: 'Job') -> bool:
         """A stop drops motion; a disable (an URGENT job that is not motion itself) drops
         everything but maintenance that cannot move (save, register reads)."""
@@ -209,13 +216,11 @@ class BusSupervisor:
         hand_over: when the owner sleeps, wait (at most HAND_OVER_MAX_S, GIL released) until
         it has taken the job. For commands from a ROS callback: without it the executor thread
         goes on holding the GIL through rclpy's wait-set rebuild after the callback, and the
-        woken owner waits for it, up to the 0.5 ms switch interval and more under load (issue
-        9's command-to-wire figures in docs/benchmarks.md). A busy owner (a transaction in
+        woken owner waits for it, up to the 0.5 ms switch interval and more under load (the
+        command-to-wire figures in docs/benchmarks.md). A busy owner (a transaction in
         flight) is not waited for: on a serial line that would hold the executor 20-30 ms."""
-        fut: concurrent.futures.Future = concurrent.futures.Future()
-        kind, label, topic = command.kind, command.label, command.topic
-        job = Job(drive, kind, command.fn, label, fut, topic, command.disarms, command.motion,
-                  self.clock(), polled=command.polled)
+        job = Job.of(drive, command, self.clock())
+        fut, kind, label, topic = job.future, command.kind, command.label, command.topic
         with self._cv:
             job.arm_seq = self.slots[drive].arm_seq
             if self._stopping:
@@ -597,10 +602,8 @@ class BusSupervisor:
         self.on_event('warning', slot.name, f'velocity watchdog: no velocity_command for '
                       f'{timeout_s:g} s (command_timeout_s), stopping')
         slot.watchdog_retry_t = self.clock() + WATCHDOG_RETRY_S
-        stop = Command.stop(slot.drive.stop, 'watchdog stop')
-        job = Job(slot.name, stop.kind, stop.fn, stop.label, concurrent.futures.Future(),
-                  disarms=stop.disarms, motion=stop.motion, enqueued_t=self.clock(),
-                  arm_seq=slot.arm_seq)
+        job = Job.of(slot.name, Command.stop(slot.drive.stop, 'watchdog stop'), self.clock(),
+                     slot.arm_seq)
         job.future.add_done_callback(lambda f: f.exception() and self.on_event(
             'error', slot.name, f'velocity watchdog: stop failed: {f.exception()}'))
         self._run_urgent(job)
@@ -720,8 +723,8 @@ class BusSupervisor:
     def _connect(self, slot: Slot) -> None:
         """Start one connection attempt: a job of the drive's own, step-wise like any other
         (a CANopen boot-up wait gives the bus to the other drives)."""
-        slot.active = Job(slot.name, CONNECT, lambda: self._connect_steps(slot), 'connect',
-                          concurrent.futures.Future(), motion=False, enqueued_t=self.clock())
+        slot.active = Job.of(slot.name, Command(CONNECT, lambda: self._connect_steps(slot),
+                                                'connect', motion=False), self.clock())
         self._advance(slot, slot.active.fn)
 
     def _connect_steps(self, slot: Slot):
