@@ -298,6 +298,7 @@ def test_bit_4_low_or_a_mode_change_ends_the_interpolated_motion(master):
     m.start_clock()
     stream(m, [STEP * k for k in range(1, 21)])
     m.cw(CW_HOLD)                        # bit 4 = 0: IP off, stop on the stop ramp (0x605D)
+    m.statusword()                       # barrier: handled (between two points the axis rests)
     wait(lambda: not m.drive.axis.moving, 2.0, 'stopped')
     stopped_at = m.position()
     assert STEP * 16 <= stopped_at < STEP * 20           # stopped on the way, short of the end
@@ -321,6 +322,7 @@ def test_bit_4_low_or_a_mode_change_ends_the_interpolated_motion(master):
     m.start_clock()
     stream(m, [int(stopped_at) + STEP * k for k in range(1, 21)])
     m.cw(CW_HOLD, mode=1)
+    m.statusword()                        # barrier: the mode change is handled
     wait(lambda: not m.drive.axis.moving, 2.0, 'stopped')
     assert m.node.sdo[vm.MODES_OF_OPERATION_DISPLAY].raw == 1 and m.statusword() & 0x6F == 0x27
     assert not m.drive.ip_started and not emcy(m, mark)
