@@ -1,16 +1,15 @@
 #!/usr/bin/env python3
-"""The README's main command: four simulated drive families and their nodes, driven through ROS.
+"""The README's main command: every simulated drive family and its node, driven through ROS.
 
-Every vendor in DEMOS at once (in parallel): its simulator and its node (the params files in
-config/, on a free port or pty), then per drive, also in parallel: enable, home, the moves of
-`targets`; then, per bus, one two-axis trajectory through ~/follow_joint_trajectory (both axes
-arrive at each point together); then per drive a velocity run that the node's watchdog stops (no
-more velocity_command after 1 s), disable. A live status table shows every drive meanwhile; at
-the end a plot of commanded versus actual position of every drive over time is written (default
-out/demo_positions.png), and one of each bus's two-axis path, actual against commanded
-(demo_positions_paths.png beside it). Exits 0
-when every step worked, leaving no process behind. Run it with scripts/demo.sh (which bootstraps
-the workspace first).
+Every vendor of the vendor table (DEMOS) at once (in parallel): its simulator and its node (the
+params files in config/, on a free port or pty), then per drive, also in parallel: enable, home,
+the moves of `targets`; then, per bus, one two-axis trajectory through ~/follow_joint_trajectory
+(both axes arrive at each point together); then per drive a velocity run that the node's watchdog
+stops (no more velocity_command after 1 s), disable. A live status table shows every drive
+meanwhile; at the end a plot of commanded versus actual position of every drive over time is
+written (default out/demo_positions.png), and one of each bus's two-axis path, actual against
+commanded (demo_positions_paths.png beside it). Exits 0 when every step worked, leaving no process
+behind. Run it with scripts/demo.sh (which bootstraps the workspace first).
 """
 
 from __future__ import annotations
@@ -28,25 +27,38 @@ os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
 
 from std_msgs.msg import Float64
 from std_srvs.srv import SetBool, Trigger
+from stepper_drivers import vendor_table
 from stepper_drivers.cli import view
 from stepper_drivers.cli.ros_client import RosClient
 from stepper_sim.harness import CONFIG, ROOT, Proc, executable, free_port
 from stepper_drivers_msgs.msg import DriveStatus
+import yaml
 
-# vendor: simulator, node, params files, the parameter that carries the link address, and the moves
-DEMOS = {
-    'xplus_mt': dict(sim='xplus_mt_sim', node='xplus_mt_node', link_param='port',
-                     targets=(3.0, -2.0, 0.0), velocity=6.0),
-    # link='path': the link is a serial port path (the simulator's pty symlink), not a TCP port
-    'rd4': dict(sim='rd4_sim', node='rd4_node', link_param='port', link='path',
-                targets=(3.0, -2.0, 0.0), velocity=6.0),
+# The moves of a vendor's drives; DEFAULT_MOVES for a vendor not named here.
+DEFAULT_MOVES = dict(targets=(3.0, -2.0, 0.0), velocity=6.0)
+MOVES = {
     # 2000 step/rev: targets within the 1e-3 rad check (-2.0 rad would be 0.0012 rad off)
-    'xmind_k': dict(sim='xmind_k_sim', node='xmind_k_node', link_param='port', link='path',
-                    targets=(3.0, -4.0, 0.0), velocity=6.0),
-    # broker=True: a CAN bus, the loopback socketcand broker started first on that port
-    'vector_step': dict(sim='vector_step_sim', node='vector_step_node', link_param='can.port',
-                        broker=True, targets=(3.0, -2.0, 0.0), velocity=6.0),
+    'xmind_k': dict(targets=(3.0, -4.0, 0.0), velocity=6.0),
 }
+
+
+def _link_is_path(row: vendor_table.VendorRow) -> bool:
+    """The link of a serial line is a path (the simulator's pty symlink); of a TCP server or a CAN
+    broker, a port number: as the node's params file gives it."""
+    value = next(iter(yaml.safe_load((CONFIG / row.params_file).read_text()).values()))
+    value = value['ros__parameters']
+    for part in row.link_param.split('.'):
+        value = value[part]
+    return isinstance(value, str)
+
+
+# Every vendor of the table: simulator, node, the parameter that carries the link address, what
+# it is (link 'path' or 'port'), the helpers the simulator needs (the CAN broker: started first on
+# that port), and the moves.
+DEMOS = {row.key: dict(sim=row.sim, node=row.node, link_param=row.link_param,
+                       link='path' if _link_is_path(row) else 'port', helpers=row.sim_helpers,
+                       **MOVES.get(row.key, DEFAULT_MOVES))
+         for row in vendor_table.ROWS}
 
 # Participants announce every 0.3 s instead of 3 s: the demo's client sees the nodes at once.
 FAST_DISCOVERY = {'FASTRTPS_DEFAULT_PROFILES_FILE': str(CONFIG / 'fastdds_fast_discovery.xml')}
@@ -189,11 +201,13 @@ class Demo:
 
     # ------------------------------------------------------------------------------ start-up
     def start(self, vendor: str, spec: dict) -> tuple[str, list[str]]:
-        port = str(free_port()) if spec.get('link') != 'path' else str(self.log_dir / vendor)
-        if spec.get('broker'):
-            broker = self.proc([executable('stepper_sim', 'socketcand_broker'), '--port',
-                                port], f'{vendor}_broker')
-            broker.wait_line('listening', 10.0)
+        port = str(free_port()) if spec['link'] != 'path' else str(self.log_dir / vendor)
+        for name, *args in spec['helpers']:
+            # on the demo's own port; a helper says 'listening' once it takes connections
+            if '--port' in args:
+                args[args.index('--port') + 1] = port
+            helper = self.proc([executable('stepper_sim', name), *args], f'{vendor}_{name}')
+            helper.wait_line('listening', 10.0)
         sim = self.proc([executable('stepper_sim', spec['sim']), '--ros-args', '--params-file',
                          str(CONFIG / f'{vendor}_sim.yaml'), '-p',
                          f"{spec['link_param']}:={port}"], spec['sim'])
@@ -205,7 +219,7 @@ class Demo:
         labels = [self.track(vendor, spec['node'], d) for d in drives]
         for label in labels:
             self.wait_status(label, lambda m: m.connected, 30.0, 'connected')
-        where = port if spec.get('link') == 'path' else f'127.0.0.1:{port}'
+        where = port if spec['link'] == 'path' else f'127.0.0.1:{port}'
         self.say(f'[{vendor}] simulator and node up on {where}; drives: {", ".join(drives)}')
         return '/' + spec['node'], drives
 

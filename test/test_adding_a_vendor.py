@@ -1,12 +1,12 @@
-"""docs/adding_a_vendor.md is what the code needs (issue 11 item 6).
+"""docs/adding_a_vendor.md is what the code needs.
 
 The page's code blocks (each `# file: <path>`, and the `# row:` block) are the toy vendor. This
 test writes them into a temporary directory, with copies of vendor_table.py and both setup.py that
 get the row appended, and shows that the table's readers pick the vendor up with no other file
 edited: the console scripts of both packages, the `toy_node` executable function, stepperctl's
-tables, the launch file as `ros2 launch` runs it, and the node itself (parameters declared from
-config/toy.yaml, the toy's validate() refusing a bad value at start-up and at run time, a drive
-that answers its simulator).
+tables, the generic launch file and the demo's as `ros2 launch` runs them, and the node itself
+(parameters declared from config/toy.yaml, the toy's validate() refusing a bad value at start-up
+and at run time, a drive that answers its simulator).
 """
 
 from __future__ import annotations
@@ -71,10 +71,10 @@ def test_the_walk_through_writes_the_pieces_the_table_names(toy):
     row = rows['BY_KEY'][KEY]
     module_file = 'src/stepper_drivers/' + row.module.replace('.', '/') + '.py'
     sim_file = 'src/stepper_sim/' + row.simulator.split(':')[0].replace('.', '/') + '.py'
+    # five files and the row: nothing else
     assert set(files) == {
         module_file, module_file.replace('.py', '_map.py'), sim_file,
-        f'config/{row.params_file}', f'config/{row.sim_params_file}',
-        f'src/stepper_drivers/launch/{row.launch_file}'}
+        f'config/{row.params_file}', f'config/{row.sim_params_file}'}
     assert [r.key for r in rows['ROWS']] == [*vendor_table.KEYS, KEY]
 
 
@@ -145,7 +145,7 @@ def test_the_executable_and_stepperctl_know_the_vendor(installed):
     assert 'toy_node' in entry_points.BY_NODE                      # main() runs it by name
     assert 'toy_lifecycle_node' in entry_points.BY_LIFECYCLE_NODE
     assert scan.NODE_NAMES['toy'] == 'toy_node' and scan.ADDRESS_NAMES['toy'] == 'address'
-    assert 'toy' not in scan.SCANNERS            # no scan_help: no scanner needed
+    assert 'toy' not in scan.scanners()          # VENDOR.scanner None: no scan command
     args = main.build_parser().parse_args(['scan', 'rd4', '--port', 'x'])
     assert args.vendor == 'rd4'
 
@@ -188,20 +188,37 @@ def test_the_node_runs_on_the_row_with_the_vendors_rules(installed, monkeypatch)
         rclpy.try_shutdown()
 
 
-def test_the_launch_file_starts_the_node_and_with_sim_true_the_simulator(toy, monkeypatch):
+def test_the_generic_launch_file_starts_the_node_and_with_sim_true_the_simulator(
+        installed, monkeypatch):
+    """driver.launch.py vendor:=toy, as `ros2 launch` runs it (test_launch_files' model) with the
+    table that has the row: the toy's executables, from the copied setup.py files (the toy is not
+    installed), and its params files."""
     import test_launch_files as tl
-    tmp, files = toy
+    tmp, _toy, _sim, _readers = installed
     config = tmp / 'config'
     for f in tl.CONFIG_DIR.glob('*.yaml'):
         shutil.copy(f, config / f.name)
     monkeypatch.setattr(tl, 'CONFIG_DIR', config)
-    text = files['src/stepper_drivers/launch/toy.launch.py']
-    sources = {'toy.launch.py': text}
-    assert tl.ros2_launch('toy.launch.py', sources) == {'toy_node': ['config/toy.yaml']}
-    assert tl.ros2_launch('toy.launch.py', sources, sim='true') == {
+    scripts = {p: set(console_scripts(tmp / 'src' / p / 'setup.py'))
+               for p in ('stepper_drivers', 'stepper_sim')}
+
+    def check_installed(package, executable):
+        assert executable in scripts[package], f'{package} has no executable {executable}'
+
+    monkeypatch.setattr(tl, 'check_installed', check_installed)
+    monkeypatch.setattr(tl, 'INSTALL', tmp / 'no-install')       # config files: from the tree
+    (tmp / 'no-install/stepper_drivers/share/stepper_drivers/config').mkdir(parents=True)
+    for f in config.glob('*.yaml'):
+        shutil.copy(f, tmp / 'no-install/stepper_drivers/share/stepper_drivers/config' / f.name)
+    launch = tl.ros2_launch
+    assert launch('driver.launch.py', vendor='toy') == {'toy_node': ['config/toy.yaml']}
+    assert launch('driver.launch.py', vendor='toy', sim='true') == {
         'toy_sim': ['config/toy_sim.yaml'], 'toy_node': ['config/toy.yaml']}
-    assert tl.ros2_launch('toy.launch.py', sources, lifecycle='true') == {
+    assert launch('driver.launch.py', vendor='toy', lifecycle='true') == {
         'toy_lifecycle_node': ['config/toy.yaml']}
+    # the demo takes the row too
+    started = launch('demo.launch.py')
+    assert started['toy_node'] == ['config/toy.yaml'] and 'rd4_node' in started
     node_p, sim_p = (next(iter(yaml.safe_load((config / n).read_text()).values()))
                      ['ros__parameters'] for n in ('toy.yaml', 'toy_sim.yaml'))
     assert node_p['port'] == sim_p['port']

@@ -1,11 +1,13 @@
 """The launch files reference only what exists and start what they should, checked without
 importing launch (not installable here).
 
-Each file is parsed with `ast`, and every package, executable, params file and included launch
-file it names is looked up in the workspace (setup.py console scripts, config/, launch/) and in
-install/ (what `ros2 launch` would run). Then `ros2_launch()` runs the files on stand-ins for the
-launch classes they use, with launch's own rules for launch configurations (below), and the tests
-check which processes start with which params files.
+One generic file, driver.launch.py (vendor:=<key>), starts every vendor from the vendor table;
+<key>.launch.py are links to it and demo.launch.py includes it once per vendor. Each file is
+parsed with `ast` for its imports and constant references. Then `ros2_launch()` runs the files on
+stand-ins for the launch classes they use, with launch's own rules for launch configurations
+(below): every executable a run starts is looked up in the workspace (setup.py console scripts)
+and in install/ (what `ros2 launch` would run), every params file in config/ and install/, and
+the tests check which processes start with which params files.
 """
 
 import ast
@@ -22,8 +24,10 @@ import yaml
 LAUNCH_DIR = ROOT / 'src' / 'stepper_drivers' / 'launch'
 CONFIG_DIR = ROOT / 'config'
 LAUNCH_FILES = sorted(LAUNCH_DIR.glob('*.launch.py'))
+SOURCES = [p for p in LAUNCH_FILES if not p.is_symlink()]     # the links are driver.launch.py
 VENDORS = KEYS
-ALLOWED_IMPORTS = ('os', 'launch', 'launch_ros', 'ament_index_python')
+ALLOWED_IMPORTS = ('os', 'launch', 'launch_ros', 'ament_index_python',
+                   'stepper_drivers.vendor_table')   # plain data: no rclpy, no vendor module
 
 
 def console_scripts(package: str) -> set[str]:
@@ -63,6 +67,10 @@ def const(node) -> str:
     return node.value
 
 
+def literal(node) -> bool:
+    return isinstance(node, ast.Constant) and isinstance(node.value, str)
+
+
 def calls(tree, name):
     return [n for n in ast.walk(tree) if isinstance(n, ast.Call) and call_name(n) == name]
 
@@ -80,15 +88,16 @@ def node_key(yaml_name: str) -> str:
     return next(iter(yaml.safe_load((CONFIG_DIR / yaml_name).read_text())))
 
 
-@pytest.fixture(params=LAUNCH_FILES, ids=[p.name for p in LAUNCH_FILES])
+@pytest.fixture(params=SOURCES, ids=[p.name for p in SOURCES])
 def launch(request):
     path = request.param
     return path, ast.parse(path.read_text(), str(path))
 
 
-def test_every_vendor_and_the_demo_have_a_launch_file():
-    names = {p.name for p in LAUNCH_FILES}
-    assert {f'{v}.launch.py' for v in VENDORS} | {'demo.launch.py'} <= names
+def test_one_generic_file_and_a_link_to_it_per_shipped_vendor():
+    assert {p.name for p in SOURCES} == {'driver.launch.py', 'demo.launch.py'}
+    links = {p.name: p.readlink() for p in LAUNCH_FILES if p.is_symlink()}
+    assert links == {f'{v}.launch.py': pathlib.Path('driver.launch.py') for v in VENDORS}
 
 
 def test_imports_and_entry_point(launch):
@@ -97,7 +106,8 @@ def test_imports_and_entry_point(launch):
         if isinstance(node, (ast.Import, ast.ImportFrom)):
             mods = [a.name for a in node.names] if isinstance(node, ast.Import) else [node.module]
             for m in mods:
-                assert m.split('.')[0] in ALLOWED_IMPORTS, f'{path.name} imports {m}'
+                assert m in ALLOWED_IMPORTS or m.split('.')[0] in ALLOWED_IMPORTS[:4], \
+                    f'{path.name} imports {m}'
     funcs = [n.name for n in tree.body if isinstance(n, ast.FunctionDef)]
     assert 'generate_launch_description' in funcs
 
@@ -111,7 +121,11 @@ def check_references(path: pathlib.Path, tree: ast.AST) -> None:
         pkg = const(c.args[0])
         assert (ROOT / 'src' / pkg / 'package.xml').exists(), f'{path.name}: no package {pkg}'
         assert (INSTALL / pkg).is_dir(), f'{pkg} not built (run scripts/bootstrap.sh)'
+    # Names computed at launch time (driver.launch.py's, from the vendor table) are checked when
+    # the model runs the file (check_installed); here the literal ones.
     for c in calls(tree, 'Node') + calls(tree, 'LifecycleNode'):
+        if not literal(kw(c, 'executable')):
+            continue
         pkg, exe = const(kw(c, 'package')), const(kw(c, 'executable'))
         assert exe in EXECUTABLES[pkg], f'{path.name}: {pkg} has no executable {exe}'
         assert (INSTALL / pkg / 'lib' / pkg / exe).exists(), f'{exe} not installed'
@@ -120,6 +134,8 @@ def check_references(path: pathlib.Path, tree: ast.AST) -> None:
     for c in calls(tree, 'ExecuteProcess'):
         # os.path.join(get_package_prefix('pkg'), 'lib', 'pkg', 'exe')
         join = kw(c, 'cmd').elts[0]
+        if not (isinstance(join, ast.Call) and all(map(literal, join.args[1:]))):
+            continue
         prefix_call, lib, pkg, exe = join.args
         pkg_name = const(prefix_call.args[0])
         assert (const(lib), const(pkg)) == ('lib', pkg_name)
@@ -132,51 +148,14 @@ def check_references(path: pathlib.Path, tree: ast.AST) -> None:
                 installed = INSTALL / 'stepper_drivers' / 'share' / 'stepper_drivers' / \
                     'config' / n.value
                 assert installed.exists(), f'{n.value} not installed (bootstrap)'
-            if n.value.endswith('.launch.py'):
+            if n.value.endswith('.launch.py') and n.value != '.launch.py':
                 assert (LAUNCH_DIR / n.value).exists(), f'{path.name}: {n.value} missing'
 
 
-def test_node_names_match_their_params_files(launch):
-    """A params file applies to the node named by its top key: renaming a node in a launch file
-    without its YAML would start it on defaults."""
-    path, tree = launch
-    defaults = {const(c.args[0]): yaml_file(kw(c, 'default_value'))
-                for c in calls(tree, 'DeclareLaunchArgument')}
-    for c in calls(tree, 'Node') + calls(tree, 'LifecycleNode'):
-        name = const(kw(c, 'name'))
-        for p in kw(c, 'parameters').elts:
-            yaml_name = yaml_file(p)
-            if yaml_name is None and isinstance(p, ast.Call) and \
-                    call_name(p) == 'LaunchConfiguration':
-                yaml_name = defaults[const(p.args[0])]
-            assert yaml_name, f'{path.name}: {name}: parameters not a config file'
-            assert node_key(yaml_name) == name, f'{yaml_name} configures {node_key(yaml_name)}'
-
-
 @pytest.mark.parametrize('vendor', VENDORS)
-def test_vendor_launch_starts_its_simulator_only_with_sim_true(vendor):
-    tree = ast.parse((LAUNCH_DIR / f'{vendor}.launch.py').read_text())
-    args = {const(c.args[0]): c for c in calls(tree, 'DeclareLaunchArgument')}
-    assert const(kw(args['sim'], 'default_value')) == 'false'
-    started = {const(kw(c, 'executable')): c for c in calls(tree, 'Node')}
-    assert f'{vendor}_node' in started and f'{vendor}_sim' in started
-    # the plain node unless lifecycle:=true, then the managed one under the same node name
-    assert const(kw(args['lifecycle'], 'default_value')) == 'false'
-    assert ast.unparse(kw(started[f'{vendor}_node'], 'condition')) == \
-        "UnlessCondition(LaunchConfiguration('lifecycle'))"
-    (managed,) = calls(tree, 'LifecycleNode')
-    assert const(kw(managed, 'executable')) == f'{vendor}_lifecycle_node'
-    assert const(kw(managed, 'name')) == f'{vendor}_node'
-    assert const(kw(managed, 'namespace')) == ''      # launch_ros requires it for LifecycleNode
-    assert ast.unparse(kw(managed, 'condition')) == \
-        "IfCondition(LaunchConfiguration('lifecycle'))"
-    assert ast.unparse(kw(managed, 'parameters')) == \
-        ast.unparse(kw(started[f'{vendor}_node'], 'parameters'))
-    for exe, c in started.items():
-        if exe.endswith('_sim'):
-            cond = ast.unparse(kw(c, 'condition'))
-            assert 'sim' in cond and ('IfCondition' in cond or cond == 'sim'), cond
-    # the simulator's link (port, pty, CAN port) is the one the node's params file opens
+def test_the_simulator_opens_the_link_the_node_opens(vendor):
+    """The simulator's link (port, pty, CAN port) is the one the node's params file opens, and a
+    helper's --port (the CAN broker) is that port too."""
     row = BY_KEY[vendor]
     links = []
     for name in (row.sim_params_file, row.params_file):
@@ -186,22 +165,9 @@ def test_vendor_launch_starts_its_simulator_only_with_sim_true(vendor):
             p = p[part]
         links.append(p)
     assert links[0] == links[1], (row.link_param, links)
-
-
-def test_demo_launch_includes_every_vendor():
-    tree = ast.parse((LAUNCH_DIR / 'demo.launch.py').read_text())
-    included = {const(c.args[0]) for c in calls(tree, 'include')}
-    assert included == {f'{v}.launch.py' for v in VENDORS}
-
-
-def test_vector_step_broker_port_is_the_params_files_port():
-    tree = ast.parse((LAUNCH_DIR / 'vector_step.launch.py').read_text())
-    cmd = kw(calls(tree, 'ExecuteProcess')[0], 'cmd').elts
-    port = int(const(cmd[cmd.index(next(e for e in cmd if isinstance(e, ast.Constant)
-                                        and e.value == '--port')) + 1]))
-    node_p = next(iter(yaml.safe_load(
-        (CONFIG_DIR / 'vector_step.yaml').read_text()).values()))['ros__parameters']
-    assert node_p['can']['port'] == port
+    for name, *args in row.sim_helpers:
+        if '--port' in args:
+            assert int(args[args.index('--port') + 1]) == links[1], (name, args, links)
 
 
 def test_launch_files_are_installed():
@@ -386,6 +352,17 @@ class PythonLaunchDescriptionSource:
         return scope['generate_launch_description']()
 
 
+class OpaqueFunction(Action):
+    # launch.actions.OpaqueFunction: function(context, *args, **kwargs) -> actions or None; the
+    # model's Run is the context (LaunchConfiguration.perform takes it)
+    def __init__(self, *, function, args=None, kwargs=None, **options):
+        super().__init__(**options)
+        self.function, self.args, self.kwargs = function, args or [], kwargs or {}
+
+    def execute(self, run: Run):
+        return self.function(run, *self.args, **self.kwargs)
+
+
 class IncludeLaunchDescription(Action):
     def __init__(self, launch_description_source, *, launch_arguments=None, **options):
         super().__init__(**options)
@@ -400,9 +377,12 @@ class IncludeLaunchDescription(Action):
 class Node(Action):
     def __init__(self, *, executable, package=None, name=None, parameters=None, **options):
         super().__init__(**options)
-        self.executable, self.node_name, self.parameters = executable, name, parameters or []
+        self.package, self.executable, self.node_name = package, executable, name
+        self.parameters = parameters or []
 
     def execute(self, run: Run):
+        if self.package is not None:          # else from PATH (the model's own tests)
+            check_installed(self.package, self.executable)
         run.started.append({'executable': self.executable, 'name': self.node_name,
                             'parameters': [run.perform(p) for p in self.parameters]})
 
@@ -421,7 +401,18 @@ class ExecuteProcess(Action):
 
     def execute(self, run: Run):
         cmd = [run.perform(c) for c in self.cmd]
+        # os.path.join(get_package_prefix('pkg'), 'lib', 'pkg', 'exe')
+        assert cmd[0].startswith(PREFIX + '/'), f'{cmd[0]}: not an executable of a package'
+        package, lib, package_again, exe = cmd[0][len(PREFIX) + 1:].split('/')
+        assert (lib, package_again) == ('lib', package), cmd[0]
+        check_installed(package, exe)
         run.started.append({'executable': cmd[0].rsplit('/', 1)[-1], 'cmd': cmd[1:]})
+
+
+def check_installed(package: str, executable: str) -> None:
+    assert executable in EXECUTABLES[package], f'{package} has no executable {executable}'
+    assert (INSTALL / package / 'lib' / package / executable).exists(), \
+        f'{executable} not installed (run scripts/bootstrap.sh)'
 
 
 def get_package_share_directory(package_name: str) -> str:
@@ -442,7 +433,7 @@ def _module(name: str, *members) -> types.ModuleType:
 STAND_INS = {
     'launch': _module('launch', LaunchDescription),
     'launch.actions': _module('launch.actions', DeclareLaunchArgument, ExecuteProcess, GroupAction,
-                              IncludeLaunchDescription, SetLaunchConfiguration),
+                              IncludeLaunchDescription, OpaqueFunction, SetLaunchConfiguration),
     'launch.conditions': _module('launch.conditions', IfCondition, UnlessCondition),
     'launch.substitutions': _module('launch.substitutions', LaunchConfiguration),
     'launch.launch_description_sources': _module('launch.launch_description_sources',
@@ -487,40 +478,85 @@ def ros2_launch(launch_file: str, sources: dict[str, str] | None = None,
         files = [f.replace(CONFIG_SHARE, 'config/') for f in p['parameters']]
         for f in files:
             if f.startswith('config/'):
-                configured = node_key(f.removeprefix('config/'))
+                name = f.removeprefix('config/')
+                assert (CONFIG_DIR / name).exists(), f'{f} missing'
+                assert (INSTALL / 'stepper_drivers' / 'share' / 'stepper_drivers' / 'config' /
+                        name).exists(), f'{f} not installed (run scripts/bootstrap.sh)'
+                configured = node_key(name)
                 assert configured == p['name'], \
                     f'{p["name"]} started with {f}, which configures {configured}'
         started[p['executable']] = files
     return started
 
 
-# the arguments of the helper executables the launch files start with sim:=true
-BROKER_ARGS = {'socketcand_broker': ['--port', '29536']}
+# the helper processes the launch files start with sim:=true, with their arguments
+HELPERS = {'vector_step': {'socketcand_broker': ['--port', '29536']}}
 
 
 def test_the_demo_starts_every_simulator_and_node_each_with_its_own_params_file():
     assert ros2_launch('demo.launch.py') == {
         **{f'{v}_{kind}': [f'config/{v}{suffix}.yaml'] for v in VENDORS
            for kind, suffix in (('sim', '_sim'), ('node', ''))},
-        **{h: BROKER_ARGS[h] for v in VENDORS for h in BY_KEY[v].sim_helpers}}
+        **{h: args for v in VENDORS for h, args in HELPERS.get(v, {}).items()}}
 
 
 @pytest.mark.parametrize('vendor', VENDORS)
-def test_a_vendor_launch_file_alone_starts_its_node_and_with_sim_true_its_simulator(vendor):
+@pytest.mark.parametrize('how', ['link', 'vendor:='])
+def test_a_vendor_launch_alone_starts_its_node_and_with_sim_true_its_simulator(vendor, how):
+    """`ros2 launch stepper_drivers <vendor>.launch.py` and `driver.launch.py vendor:=<vendor>`
+    start the same."""
+    def launch(**arguments):
+        if how == 'link':
+            return ros2_launch(f'{vendor}.launch.py', **arguments)
+        return ros2_launch('driver.launch.py', vendor=vendor, **arguments)
+
     node = {f'{vendor}_node': [f'config/{vendor}.yaml']}
-    sim = {f'{vendor}_sim': [f'config/{vendor}_sim.yaml']}
-    for helper in BY_KEY[vendor].sim_helpers:
-        sim[helper] = BROKER_ARGS[helper]
-    assert ros2_launch(f'{vendor}.launch.py') == node
-    assert ros2_launch(f'{vendor}.launch.py', sim='true') == {**sim, **node}
-    assert ros2_launch(f'{vendor}.launch.py', sim='false', params_file='/cell/line1.yaml') == \
+    sim = {f'{vendor}_sim': [f'config/{vendor}_sim.yaml'], **HELPERS.get(vendor, {})}
+    assert launch() == node
+    assert launch(sim='true') == {**sim, **node}
+    assert list(launch(sim='true'))[-2:] == [f'{vendor}_sim', f'{vendor}_node']  # helpers first
+    assert launch(sim='false', params_file='/cell/line1.yaml') == \
         {f'{vendor}_node': ['/cell/line1.yaml']}
     # lifecycle:=true: the managed node instead, named like the plain one, same params file
-    assert ros2_launch(f'{vendor}.launch.py', lifecycle='true') == \
-        {f'{vendor}_lifecycle_node': [f'config/{vendor}.yaml']}
+    assert launch(lifecycle='true') == {f'{vendor}_lifecycle_node': [f'config/{vendor}.yaml']}
+    assert launch(lifecycle='true', sim='true') == \
+        {**sim, f'{vendor}_lifecycle_node': [f'config/{vendor}.yaml']}
 
 
-# demo.launch.py before issue 10: the vendor files included one after the other, unscoped.
+@pytest.mark.parametrize('arguments, error', [
+    ({}, "vendor:='' is not a vendor of stepper_drivers"),
+    ({'vendor': 'rd5'}, "vendor:='rd5' is not a vendor of stepper_drivers \\(one of: "
+                        + ', '.join(VENDORS)),
+])
+def test_the_generic_file_without_a_known_vendor_says_which_there_are(arguments, error):
+    with pytest.raises(RuntimeError, match=error):
+        ros2_launch('driver.launch.py', **arguments)
+
+
+def test_a_vendor_argument_overrides_the_file_name():
+    assert ros2_launch('rd4.launch.py', vendor='xmind_k') == \
+        {'xmind_k_node': ['config/xmind_k.yaml']}
+
+
+# A demo of before: per-vendor launch files, each with its own params_file default, included one
+# after the other, unscoped.
+OLD_VENDOR_FILE = """
+import os
+from ament_index_python.packages import get_package_share_directory
+from launch import LaunchDescription
+from launch.actions import DeclareLaunchArgument
+from launch.substitutions import LaunchConfiguration
+from launch_ros.actions import Node
+
+
+def generate_launch_description():
+    config = os.path.join(get_package_share_directory('stepper_drivers'), 'config')
+    return LaunchDescription([
+        DeclareLaunchArgument('params_file', default_value=os.path.join(config, '{key}.yaml')),
+        Node(package='stepper_drivers', executable='{key}_node', name='{key}_node',
+             parameters=[LaunchConfiguration('params_file')]),
+    ])
+"""
 UNSCOPED_DEMO = """
 import os
 from ament_index_python.packages import get_package_share_directory
@@ -532,19 +568,29 @@ from launch.launch_description_sources import PythonLaunchDescriptionSource
 def generate_launch_description():
     share = get_package_share_directory('stepper_drivers')
     return LaunchDescription([IncludeLaunchDescription(
-        PythonLaunchDescriptionSource(os.path.join(share, 'launch', f'{v}.launch.py')),
-        launch_arguments={'sim': 'true'}.items())
-        for v in ('xplus_mt', 'rd4', 'xmind_k', 'vector_step')])
+        PythonLaunchDescriptionSource(os.path.join(share, 'launch', f'old_{v}.launch.py')))
+        for v in ('xplus_mt', 'rd4')])
 """
 
 
 def test_the_model_passes_an_unscoped_include_s_arguments_on_as_launch_does():
-    """What `ros2 launch stepper_drivers demo.launch.py` did on a real Jazzy install with the demo
+    """What `ros2 launch stepper_drivers demo.launch.py` did on a real Jazzy install with a demo
     of before: the first file's params_file default reached every later vendor's node."""
+    sources = {'demo.launch.py': UNSCOPED_DEMO,
+               **{f'old_{key}.launch.py': OLD_VENDOR_FILE.replace('{key}', key)
+                  for key in ('xplus_mt', 'rd4')}}
     with pytest.raises(AssertionError,
                        match='rd4_node started with config/xplus_mt.yaml, which configures '
                              'xplus_mt_node'):
-        ros2_launch('demo.launch.py', {'demo.launch.py': UNSCOPED_DEMO})
+        ros2_launch('demo.launch.py', sources)
+
+
+def test_the_links_included_unscoped_would_all_start_the_first_vendor():
+    """Why demo.launch.py scopes each include: the vendor a link's name gives is a launch
+    argument default, and the first one set stays for every later unscoped include."""
+    text = UNSCOPED_DEMO.replace("f'old_{v}.launch.py'", "f'{v}.launch.py'")
+    with pytest.raises(AssertionError, match='xplus_mt_node started twice'):
+        ros2_launch('demo.launch.py', {'demo.launch.py': text})
 
 
 def test_the_model_scopes_a_group_as_launch_does():

@@ -2,7 +2,8 @@
 
     protocol/  ->  vendors/  ->  supervisor / node / cli / entry points
     (drive.py, the Bus/Drive contract, and the ROS-free helpers sit under all of them;
-    every transport, a drive.Bus, lives in protocol/)
+    every transport, a drive.Bus, lives in protocol/; a vendor's bus scanner, vendors/*_scan,
+    uses the scanning helpers and its map, never its vendor module, which imports it, nor cli/)
     stepper_sim -> protocol codecs and vendors/*_map only (never a drive class, cia402.py, the
     supervisor or the node: a simulator shares codecs and maps with the driver, not its logic)
 
@@ -23,9 +24,10 @@ SIM = ROOT / 'src' / 'stepper_sim' / 'stepper_sim'
 
 ROS = ('rclpy', 'ament_index_python', 'rcl_interfaces', 'launch', 'launch_ros',
        'rosidl_runtime_py')
-# ROS-free modules under the vendors: the contract, CiA 402, units, rules, planning, supervisor
-CORE = ('drive', 'cia402', 'cia402_drive', 'units', 'param_rules', 'trajectory', 'commands',
-        'supervisor', 'follow')
+# ROS-free modules under the vendors: the contract, CiA 402, units, rules, planning, supervisor,
+# what the bus scanners share
+CORE = ('drive', 'cia402', 'cia402_drive', 'cia402_modes', 'units', 'param_rules', 'trajectory',
+        'commands', 'supervisor', 'follow', 'scanning')
 # protocol modules that are transports (a bus, a line): the simulators do not use them
 TRANSPORTS = ('canopen_link', 'xmind_k_bus', 'ascii_line', 'modbus_tcp')
 
@@ -93,6 +95,10 @@ def problems(module: str, imported: set[str]) -> list[str]:
         if module.endswith('_map'):
             bad('a map uses only protocol/ (codecs, CiA numbers)',
                 {m for m in ours if not m.startswith('protocol')})
+        elif module.endswith('_scan'):
+            bad('a scanner uses protocol/, vendors/*_map and the ROS-free core only',
+                {m for m in ours if not (m in CORE or m.startswith('protocol')
+                                         or (m.startswith('vendors.') and m.endswith('_map')))})
         else:
             bad('a vendor uses protocol/, vendors/ and the ROS-free core only',
                 {m for m in ours if not (m in CORE or m.startswith(('protocol', 'vendors')))})
@@ -156,6 +162,13 @@ def test_the_import_graph_runs_only_downwards():
      {'ament_index_python.packages.get_package_share_directory'}, 'vendors/ import no ROS'),
     ('stepper_drivers.vendors.xmind_k', {'stepper_drivers.node.DriveNode'}, 'a vendor uses'),
     ('stepper_drivers.vendors.rd4_map', {'stepper_drivers.cia402'}, 'a map uses only'),
+    ('stepper_drivers.vendors.rd4_scan', {'stepper_drivers.cli.errors.CliError'},
+     'a scanner uses'),
+    ('stepper_drivers.vendors.rd4_scan', {'stepper_drivers.vendors.rd4.VENDOR'},
+     'a scanner uses'),
+    ('stepper_drivers.vendors.vector_step_scan', {'rclpy.node.Node'}, 'vendors/ import no ROS'),
+    ('stepper_drivers.scanning', {'stepper_drivers.cli.errors.CliError'}, 'the core uses only'),
+    ('stepper_drivers.scanning', {'rclpy.logging'}, 'the core imports no ROS'),
     ('stepper_drivers.supervisor', {'stepper_drivers.vendors.rd4'}, 'the core uses only'),
     ('stepper_drivers.cli.scan', {'stepper_sim.socketcand_broker.SocketcandBroker'},
      'the product does not import the simulators'),
@@ -168,6 +181,24 @@ def test_the_import_graph_runs_only_downwards():
 def test_each_rule_refuses_an_upward_import(module, imported, words):
     found = problems(module, imported)
     assert len(found) == 1 and words in found[0], found
+
+
+def test_every_scanner_is_a_vendor_scan_module_the_rules_read():
+    """A vendor's VENDOR.scanner lives in vendors/<key>_scan.py (the rule for scanners reads
+    that name), and the graph above reads it and scanning.py."""
+    import importlib
+
+    from stepper_drivers import vendor_table
+
+    read = {name for name, _imported in modules()}
+    assert 'stepper_drivers.scanning' in read
+    for row in vendor_table.ROWS:
+        scanner = importlib.import_module(row.module).VENDOR.scanner
+        if scanner is None:
+            continue
+        module = f'stepper_drivers.vendors.{row.key}_scan'
+        assert module in read, module
+        assert scanner.scan.__module__ == scanner.add_options.__module__ == module, row.key
 
 
 def test_relative_imports_resolve_to_the_module_they_name(tmp_path):

@@ -8,6 +8,7 @@ that YAML: it must connect to every drive found, enable one and move it.
 import math
 import os
 import subprocess
+import sys
 
 import pytest
 from rosharness import CONFIG, executable, free_port
@@ -89,6 +90,27 @@ def test_nothing_answers_bad_port_and_usage(tmp_path):
     assert r.returncode == 2 and 'allowed: 1..247' in r.stderr
     r = ctl('scan', 'rd4', '--port', str(tmp_path / 'no_such_tty'))
     assert r.returncode == 1 and 'cannot open' in r.stderr and 'no_such_tty' in r.stderr
+
+
+@pytest.mark.parametrize('argv, loaded', [
+    (['list', '--help'], ()), (['--help'], ()), (['move', '--help'], ()),
+    (['scan', '--help'], ('xplus_mt', 'rd4', 'xmind_k', 'vector_step')),
+    (['scan', 'rd4', '--help'], ('rd4',))])
+def test_only_a_scan_command_line_loads_the_vendor_modules(argv, loaded):
+    """The scanners are the vendor modules' (VENDOR.scanner), whose imports (canopen, pymodbus)
+    take a third of a second: the other commands build their parsers without them."""
+    code = ('import contextlib, io, sys\n'
+            'from stepper_drivers.cli.main import main\n'
+            'with contextlib.redirect_stdout(io.StringIO()), contextlib.suppress(SystemExit):\n'
+            '    main(sys.argv[1:])\n'
+            "print(sorted(m for m in sys.modules if m.startswith('stepper_drivers.vendors.')))")
+    r = subprocess.run([sys.executable, '-c', code, *argv], capture_output=True, text=True,
+                       timeout=60.0, check=True)
+    modules = r.stdout.strip()
+    if loaded:
+        assert all(f"'stepper_drivers.vendors.{key}_scan'" in modules for key in loaded), modules
+    else:
+        assert modules == '[]', modules
 
 
 def test_rd4_finds_units_and_their_line_settings(procs, ros, tmp_path):

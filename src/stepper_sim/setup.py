@@ -13,7 +13,7 @@ ROWS = runpy.run_path(os.path.join(HERE, '..', 'stepper_drivers', 'stepper_drive
 # One console script per simulator: '<key>_sim = <row.simulator>', and one per helper a
 # simulator needs (row.sim_helpers, e.g. the CAN broker): '<name> = stepper_sim.<name>:main'.
 SIMS = {row.sim: row.simulator for row in ROWS}
-SIMS.update({h: f'stepper_sim.{h}:main' for row in ROWS for h in row.sim_helpers})
+SIMS.update({h: f'stepper_sim.{h}:main' for row in ROWS for h, *_args in row.sim_helpers})
 
 setup(
     name=package_name,

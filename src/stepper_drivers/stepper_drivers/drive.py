@@ -28,6 +28,8 @@ import time
 import types
 from typing import Any, Callable, Generator, Mapping, TypeVar
 
+from .scanning import Scanner
+
 T = TypeVar('T')
 # A step-wise operation: yields delays [s], returns the result (see the module docstring).
 Steps = Generator[float, None, T]
@@ -346,10 +348,11 @@ class InterpolatingDrive(abc.ABC):
 
 @dataclasses.dataclass(frozen=True)
 class Vendor:
-    """Everything a vendor module gives the node layer, in one object: its parameters, the two
-    factories, the check of a whole configuration and the files of the installed package its
-    parameters may name. Its capabilities beyond the Drive interface are interfaces its drive
-    class implements (InterpolatingDrive) or Drive attributes it sets (state_from_cache ...)."""
+    """Everything a vendor module gives the node layer and stepperctl, in one object: its
+    parameters, the two factories, the check of a whole configuration, the files of the
+    installed package its parameters may name, and its bus scanner. Its capabilities beyond the
+    Drive interface are interfaces its drive class implements (InterpolatingDrive) or Drive
+    attributes it sets (state_from_cache ...)."""
 
     name: str                      # e.g. 'X-PLUS MT'
     params: tuple[ParamSpec, ...]  # vendor bus and per-drive parameters
@@ -367,6 +370,8 @@ class Vendor:
     # Parameters whose '' means a file of the installed stepper_drivers package (the node
     # finds it through ROS's package index; without a node, the source tree's): {param: path}
     share_files: Mapping[str, str] = dataclasses.field(default_factory=dict)
+    # `stepperctl scan <key>` (vendors/<key>_scan.py); None: the vendor has no scanner
+    scanner: Scanner | None = None
 
     def with_defaults(self, params: Mapping[str, Any]) -> dict[str, Any]:
         """One drive's `params` over this vendor's defaults: its bus-scope and drive-scope

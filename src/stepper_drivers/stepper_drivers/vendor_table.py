@@ -1,4 +1,4 @@
-"""The vendors, one row each: what the executables, both setup.py, stepperctl and the tests read.
+"""The vendors, one row each: what the executables, setup.py, stepperctl, launch and tests read.
 
 Plain data, no imports of the package (both setup.py files load this file with runpy, without
 rclpy or the vendor modules). Everything else about a vendor follows from its key by convention:
@@ -6,9 +6,12 @@ rclpy or the vendor modules). Everything else about a vendor follows from its ke
     executable            <key>_node and <key>_lifecycle_node (stepper_drivers.entry_points),
                           <key>_sim (stepper_sim)
     params files          config/<key>.yaml (node named <key>_node), config/<key>_sim.yaml
-    launch file           src/stepper_drivers/launch/<key>.launch.py (sim:=true adds the sim)
+    launch file           src/stepper_drivers/launch/driver.launch.py vendor:=<key> (sim:=true
+                          adds the sim); <key>.launch.py, a link to it, for the four shipped
     driver page           docs/<key>.md
     vendor module         `module`: VENDOR (drive.Vendor) and validate(params) -> list[str]
+    bus scanner           VENDOR.scanner, in vendors/<key>_scan.py: `stepperctl scan <key>`
+                          (None: the vendor has no scan command)
 
 docs/adding_a_vendor.md walks through adding a row.
 """
@@ -22,15 +25,14 @@ import dataclasses
 class VendorRow:
     key: str               # 'rd4': names the executables, files and the stepperctl scan command
     title: str             # 'Lika RD4', for help texts
-    module: str            # the vendor module: VENDOR and validate(params)
+    module: str            # the vendor module: VENDOR (with its scanner) and validate(params)
     simulator: str         # console script target of <key>_sim: 'package.module:function'
     address_param: str     # the per-drive address parameter ('node_id', 'unit_id', ...)
     link_param: str = 'port'   # the parameter the node and its simulator share (the link)
-    # other executables `<key>.launch.py sim:=true` starts: stepper_sim console scripts
-    # '<name> = stepper_sim.<name>:main' (src/stepper_sim/setup.py)
-    sim_helpers: tuple[str, ...] = ()
-    scan_help: str = ''    # `stepperctl scan <key>` help; '' = no scanner (cli/scan.py)
-    scan_hint: str = ''    # what to check when a scan finds nothing
+    # other processes `driver.launch.py vendor:=<key> sim:=true` starts before the simulator,
+    # each a stepper_sim console script '<name> = stepper_sim.<name>:main' (src/stepper_sim/
+    # setup.py) and its arguments: (name, arg, ...)
+    sim_helpers: tuple[tuple[str, ...], ...] = ()
 
     @property
     def node(self) -> str:
@@ -53,33 +55,18 @@ class VendorRow:
     def sim_params_file(self) -> str:
         return f'{self.key}_sim.yaml'
 
-    @property
-    def launch_file(self) -> str:
-        return f'{self.key}.launch.py'
-
 
 ROWS: tuple[VendorRow, ...] = (
     VendorRow('xplus_mt', 'R.T.A. X-PLUS MT', 'stepper_drivers.vendors.xplus_mt',
-              'stepper_sim.xplus_mt_sim:main', 'unit_id',
-              scan_help='R.T.A. X-PLUS MT: Modbus TCP hosts and unit ids',
-              scan_hint='check --host/--port (factory 192.168.1.10:502) and that the drive is '
-                        'powered'),
+              'stepper_sim.xplus_mt_sim:main', 'unit_id'),
     VendorRow('rd4', 'Lika RD4', 'stepper_drivers.vendors.rd4', 'stepper_sim.rd4_sim:main',
-              'node_id',
-              scan_help='Lika RD4: Modbus RTU unit ids on a serial line',
-              scan_hint="check the port, the A/B wiring, and --baudrate/--parity against the "
-                        "units' dip-switches (factory 9600 8E1)"),
+              'node_id'),
     VendorRow('xmind_k', 'R.T.A. X-MIND K', 'stepper_drivers.vendors.xmind_k',
-              'stepper_sim.xmind_k_sim:main', 'address',
-              scan_help='R.T.A. X-MIND K: ASCII addresses 00-47 on RS-485',
-              scan_hint='check the port and wiring; a drive running a program does not answer '
-                        '(§3): stop it (EE) first'),
+              'stepper_sim.xmind_k_sim:main', 'address'),
     VendorRow('vector_step', 'AEC Vector Step', 'stepper_drivers.vendors.vector_step',
               'stepper_sim.vector_step_sim:main', 'node_id', link_param='can.port',
-              sim_helpers=('socketcand_broker',),
-              scan_help='AEC Vector Step: CANopen node-ids (0x1018)',
-              scan_hint='check the CAN interface, the bit rate (Rcanbaud) and the bus '
-                        'termination'),
+              # the loopback CAN broker on can.port of both params files
+              sim_helpers=(('socketcand_broker', '--port', '29536'),)),
 )
 
 BY_KEY = {row.key: row for row in ROWS}

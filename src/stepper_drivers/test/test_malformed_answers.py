@@ -90,7 +90,8 @@ def test_x_mind_k_n_to_a_data_request_is_a_link_error_and_reads_stay_clean(tmp_p
 def test_x_mind_k_scan_lists_a_device_that_answers_n_or_y(tmp_path):
     """stepperctl scan read the RS of an N answer and ended with IndexError."""
     import argparse
-    from stepper_drivers.cli import scan
+    from stepper_drivers.scanning import Deadline
+    from stepper_drivers.vendors import xmind_k_scan
     devices = [OtherDevice('a1', 1, {'01QS,RS': b'01N\r'}),
                OtherDevice('a2', 2, {'02QS,RD': b'02Y\r', '02QE': b'02N\r'})]
     r = XmindKRig(tmp_path, devices=devices, connect=False)
@@ -98,7 +99,7 @@ def test_x_mind_k_scan_lists_a_device_that_answers_n_or_y(tmp_path):
     try:
         args = argparse.Namespace(addresses='1-2', port=r.line.link_path, local_echo=False,
                                   timeout=0.1, answer_delay_ms=10)
-        (result,) = scan.scan_xmind_k(args, scan.Deadline(10.0))
+        (result,) = xmind_k_scan.scan(args, Deadline(10.0))
         one, two = result.drives
         assert one.address == 1 and 'answered N to QS,RS' in one.notes[0]
         assert two.identity['RS'] == 'D2' and 'RD' not in two.identity and 'QE' not in \

@@ -6,7 +6,6 @@ import argparse
 import logging
 import sys
 
-from .. import vendor_table
 from .errors import EXIT_INTERRUPTED, EXIT_NAMES, EXIT_USAGE, CliError
 
 logger = logging.getLogger(__name__)
@@ -36,7 +35,8 @@ def _common(timeout_s: float) -> argparse.ArgumentParser:
     return p
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(scan_vendors: bool = True) -> argparse.ArgumentParser:
+    """The parser of every command; `scan <key>` for each vendor only with `scan_vendors`."""
     ap = Parser(
         prog=PROG, description='Operate stepper drives through their ROS nodes, or scan a bus '
         'for drives.', epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -94,64 +94,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('type', metavar='TYPE')
     p.add_argument('value', metavar='VALUE', help='integer (decimal or 0x hex), or text')
 
-    _scan_parser(sub)
+    _scan_parser(sub, scan_vendors)
     return ap
 
 
-def _rd4_scan_options(p) -> tuple[float, float]:
-    p.add_argument('--port', required=True, help='serial device or pyserial URL')
-    p.add_argument('--ids', default='1-247', help='unit ids, e.g. 1-10,12 (default 1-247)')
-    p.add_argument('--baudrate', default='9600,19200', help='baud rates to try, in order '
-                   '(default 9600,19200)')
-    p.add_argument('--parity', default='E,N,O', help='parities to try, in order (default '
-                   'E,N,O; factory setting 9600 8E1)')
-    p.add_argument('--all-settings', action='store_true',
-                   help='go on with the other settings after one found drives')
-    return 0.05, 120.0
-
-
-def _xplus_mt_scan_options(p) -> tuple[float, float]:
-    p.add_argument('--host', action='append', default=None,
-                   help='host, range 192.168.1.10-20 or network 192.168.1.0/28; repeatable '
-                   '(default 192.168.1.10, the factory address)')
-    p.add_argument('--port', type=int, default=502, help='TCP port (default 502)')
-    p.add_argument('--ids', default='1-247', help='unit ids (default 1-247)')
-    return 0.2, 60.0
-
-
-def _xmind_k_scan_options(p) -> tuple[float, float]:
-    p.add_argument('--port', required=True, help='serial device or pyserial URL')
-    p.add_argument('--addresses', default='0-47', help='addresses (default 0-47)')
-    p.add_argument('--answer-delay-ms', type=float, default=10.0, metavar='MS',
-                   help='answer delay preset RD the drives use (§4.2.2.5, factory 10)')
-    p.add_argument('--local-echo', action='store_true',
-                   help='the RS-485 adapter echoes what it sends')
-    return 0.03, 30.0
-
-
-def _vector_step_scan_options(p) -> tuple[float, float]:
-    p.add_argument('--interface', default='socketcand',
-                   help='python-can interface: socketcan (Linux CAN card) or socketcand '
-                   '(default, the loopback broker)')
-    p.add_argument('--channel', default='can0', help='CAN channel (default can0)')
-    p.add_argument('--bitrate', type=int, default=125000, help='bit rate (default 125000)')
-    p.add_argument('--can-host', default='127.0.0.1', help='socketcand host')
-    p.add_argument('--can-port', type=int, default=29536, help='socketcand port')
-    p.add_argument('--ids', default='1-127', help='node-ids (default 1-127)')
-    p.add_argument('--listen', type=float, default=0.5, metavar='S',
-                   help='how long to collect answers to the broadcast probe [s]')
-    return 0.3, 30.0
-
-
-# The options of `stepperctl scan <key>` for each vendor of the table with a scanner (scan_help);
-# each returns its (answer timeout per address, whole scan) defaults [s].
-SCAN_OPTIONS = {'rd4': _rd4_scan_options, 'xplus_mt': _xplus_mt_scan_options,
-                'xmind_k': _xmind_k_scan_options, 'vector_step': _vector_step_scan_options}
-
-
-def _scan_parser(sub) -> None:
+def _scan_parser(sub, with_vendors: bool) -> None:
     scan = sub.add_parser('scan', help='find the drives on a bus (talks to the bus directly: '
                           'stop the node of that bus first)')
+    if not with_vendors:
+        return
     vendors = scan.add_subparsers(dest='vendor', metavar='VENDOR', required=True)
 
     def common(p, timeout_s: float, max_time_s: float) -> None:
@@ -164,22 +115,27 @@ def _scan_parser(sub) -> None:
         p.add_argument('--node-name', metavar='NAME',
                        help='node name in that file (default <vendor>_node)')
 
-    for row in vendor_table.ROWS:
-        if row.scan_help:
-            p = vendors.add_parser(row.key, help=row.scan_help)
-            common(p, *SCAN_OPTIONS[row.key](p))
+    from .scan import scanners     # as main() imports it: for scan command lines only
+    for key, scanner in scanners().items():
+        p = vendors.add_parser(key, help=scanner.help)
+        common(p, *scanner.add_options(p))
+
+
+def _command(argv: list[str]) -> str | None:
+    """The command word of a command line (the top-level parser has no option with a value)."""
+    return next((a for a in argv if not a.startswith('-')), None)
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     logging.basicConfig(level=logging.WARNING, format=f'{PROG}: %(message)s')
-    parser = build_parser()
+    # `scan <key>` comes from the vendor modules (VENDOR.scanner); loading them takes about a
+    # third of a second (canopen, pymodbus), so only a scan command line pays it
+    parser = build_parser(scan_vendors=_command(argv) == 'scan')
     args = parser.parse_args(argv)
     try:
         if args.command == 'scan':
             from . import scan
-            if args.vendor == 'xplus_mt' and not args.host:
-                args.host = ['192.168.1.10']
             return scan.run(args)
         if getattr(args, 'timeout', 1.0) <= 0:
             raise CliError(EXIT_USAGE, '--timeout must be > 0')

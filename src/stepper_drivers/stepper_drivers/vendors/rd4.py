@@ -52,7 +52,7 @@ from ..protocol import serial_port
 from ..protocol.modbus import RawRegisterRules, parse_raw_register
 from ..protocol.modbus_rtu import (BITS_PER_CHAR, ILLEGAL_DATA_ADDRESS, ILLEGAL_FUNCTION,
                                     ModbusExceptionError, ModbusRtuBus)
-from . import rd4_map as rm
+from . import rd4_map as rm, rd4_scan
 from .rd4_map import HR, IR
 
 logger = logging.getLogger(__name__)
@@ -904,4 +904,5 @@ VENDOR = Vendor(
     make_drive=make_drive,
     drive_defaults={'steps_per_rev': 1024.0, 'homing.method': HOMING_METHOD_PRESET},
     validate=validate,
+    scanner=rd4_scan.SCANNER,
 )

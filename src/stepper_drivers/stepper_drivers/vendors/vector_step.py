@@ -45,7 +45,7 @@ from ..drive import (Bus, DriveError, DriveState, Homing, HomingState, IdentityE
                      register_type)
 from ..protocol.canopen_link import (MASTER, POLL_S, CanBus, RemoteDrive, SdoAbortError, pack,
                                      unpack)
-from . import vector_step_map as vm
+from . import vector_step_map as vm, vector_step_scan
 
 logger = logging.getLogger(__name__)
 
@@ -1204,4 +1204,5 @@ def make_drive(bus: Bus, name: str, params: Mapping[str, Any]) -> VectorStepDriv
 
 VENDOR = Vendor(name='AEC Vector Step', params=PARAMS, make_bus=make_bus, make_drive=make_drive,
                 drive_defaults={'steps_per_rev': 3200.0, 'homing.method': 35},
-                validate=validate, share_files={'can.eds_file': vm.EDS_FILE})
+                validate=validate, share_files={'can.eds_file': vm.EDS_FILE},
+                scanner=vector_step_scan.SCANNER)

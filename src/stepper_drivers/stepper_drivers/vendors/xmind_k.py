@@ -35,6 +35,7 @@ from ..drive import (DriveError, DriveState, HomingState, LinkError, Motion, Ref
                      State)
 from ..protocol import serial_port, xmind_k as xk
 from ..protocol.xmind_k_bus import GarbledAnswer, XmindKBus
+from . import xmind_k_scan
 
 logger = logging.getLogger(__name__)
 
@@ -1055,4 +1056,5 @@ VENDOR = drive.Vendor(
     make_drive=make_drive,
     drive_defaults={'steps_per_rev': 2000.0, 'homing.method': 3},   # RS D2 factory default
     validate=validate,
+    scanner=xmind_k_scan.SCANNER,
 )

@@ -30,7 +30,7 @@ from ..drive import (Bus, DriveError, DriveState, Homing, HomingState, IdentityE
                      ParamSpec, State, Steps, Vendor, register_type)
 from ..protocol.modbus import RawRegisterRules, parse_raw_register
 from ..protocol.modbus_tcp import ModbusExceptionError, ModbusTcpBus, make_bus as make_tcp_bus
-from . import xplus_mt_map as xm
+from . import xplus_mt_map as xm, xplus_mt_scan
 
 logger = logging.getLogger(__name__)
 
@@ -697,4 +697,5 @@ VENDOR = Vendor(
     drive_defaults={'steps_per_rev': float(xm.STEPS_PER_REV), 'homing.method': 35},
     drive_bus_params=DRIVE_BUS_PARAMS,
     validate=validate,
+    scanner=xplus_mt_scan.SCANNER,
 )
