@@ -152,10 +152,6 @@ MODE_NONE = 0
 MODE_PROFILE_POSITION = 1
 MODE_PROFILE_VELOCITY = 3
 MODE_HOMING = 6
-MODE_NAMES: dict[int, str] = {
-    MODE_NONE: '', MODE_PROFILE_POSITION: 'PROFILE POSITION',
-    MODE_PROFILE_VELOCITY: 'PROFILE VELOCITY', MODE_HOMING: 'HOMING',
-}
 
 # Homing status from (bit 13 error, bit 12 attained, bit 10 target reached), CiA 402 table.
 HOMING_STATUS: dict[tuple[bool, bool, bool], HomingState] = {

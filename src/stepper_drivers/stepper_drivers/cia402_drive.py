@@ -3,10 +3,12 @@
 `Cia402Drive` is a `drive.Drive` whose controlword and statusword follow CiA 402: the R.T.A.
 X-PLUS MT (Modbus holding registers 1040/1001) and the AEC Vector Step (CANopen 0x6040/0x6041 by
 RxPDO/TxPDO). Written once here, on `cia402.Cia402Device`: the power stage (enable, disable), the
-preconditions of a motion command (`_require_enabled`, `_ensure_mode`) and the fault reset. A
-vendor class gives its object access (`_read_statusword`, `_write_controlword` and how it reads
-and writes the mode and the target) and its quirks through the hook methods below, each named
-for the step of the skeleton it takes.
+preconditions of a motion command (`_require_enabled`, `_ensure_mode`), the start edge of the
+modes that run while controlword bit 4 is high and the fault reset. The modes of operation are
+`cia402_modes` objects the vendor lists in `MODES` (registered in `self.modes` by code): each
+knows its start and stop and its statusword bits. A vendor class gives its object access
+(`_read_statusword`, `_write_controlword` and how it reads and writes the mode and the target)
+and its quirks through the hook methods below, each named for the step of the skeleton it takes.
 
 A hook typed `X | Steps[X]` may be step-wise (`drive.Steps`) or return at once: the skeleton runs
 it either way, so a vendor that needs no transaction there adds no step.
@@ -18,7 +20,8 @@ import abc
 from typing import Any, Mapping, TypeVar
 
 from . import cia402
-from .cia402 import FAULT_STATES
+from .cia402 import CW_BIT_NEW_SET_POINT, FAULT_STATES
+from .cia402_modes import HomingMode, Mode
 from .drive import Bus, Drive, DriveError, State, Steps, is_steps
 
 T = TypeVar('T')
@@ -57,12 +60,18 @@ class Cia402Drive(Drive):
     DISABLE_LEAVES: tuple[State, ...] = FAULT_STATES
     # _require_enabled's refusal; {what}: the command, {state}: cia402.describe(statusword).
     NOT_ENABLED_TEXT = '{what}: drive is in {state}, not OPERATION ENABLED; enable first'
+    # The modes of operation of the manual (cia402_modes objects), self.modes by code.
+    MODES: tuple[Mode, ...] = ()
+    # start_edge writes the low level even when bit 4 is low already (False: only when it is
+    # high or not known).
+    START_EDGE_LOW_ALWAYS = False
 
     def __init__(self, bus: Bus, name: str, params: Mapping[str, Any]):
         super().__init__(bus, name, params)
         self.cia = cia402.Cia402Device(self._read_statusword, self._write_controlword,
                                        min_delay_s=self.CW_SW_DELAY_S, name=name)
         self.cia.POLL_S = self.STATUSWORD_POLL_S
+        self.modes: dict[int, Mode] = {mode.code: mode for mode in self.MODES}
 
     # ------------------------------------------------------------------ object access
     @abc.abstractmethod
@@ -156,24 +165,46 @@ class Cia402Drive(Drive):
     def _statusword_for_motion(self) -> tuple[int, int | None]:
         """(statusword, modes of operation display or None) checked before a motion command."""
 
-    def _ensure_mode(self, mode: int, what: str = '', current: int | None = None
-                     ) -> Steps[None]:
-        """Modes of operation = `mode`, unless the drive is in it already (`_in_mode`).
-        `what`: the command, for messages; `current`: what `_require_enabled` returned just
-        before (the step that read it)."""
+    def _ensure_mode(self, code: int, what: str = '', current: int | None = None
+                     ) -> Steps[Mode]:
+        """Modes of operation = `code`, unless the drive is in it already (`_in_mode`); returns
+        the mode object. `what`: the command, for messages; `current`: what `_require_enabled`
+        returned just before (the step that read it)."""
+        mode = self.modes[code]
         yield from self._end_read_step()
-        if self._in_mode(mode, current):
-            return
-        yield from self._switch_mode(mode, what, current)
+        if not self._in_mode(code, current):
+            yield from self._switch_mode(mode, what, current)
+        return mode
 
     @abc.abstractmethod
     def _in_mode(self, mode: int, current: int | None = None) -> bool:
         """The drive is in `mode` (`current`: as in _ensure_mode)."""
 
     @abc.abstractmethod
-    def _switch_mode(self, mode: int, what: str, current: int | None) -> Steps[None]:
-        """Write modes of operation = `mode` and wait until the drive shows it; DriveError when
-        it does not."""
+    def _switch_mode(self, mode: Mode, what: str, current: int | None) -> Steps[None]:
+        """Write modes of operation = `mode.code` and wait until the drive shows it; DriveError
+        when it does not."""
+
+    def start_edge(self, base_cw: int, bits: int) -> Steps[None]:
+        """Controlword bit 4 rising edge, then held high (`bits` includes bit 4): the homing
+        operation start and the start of the modes that run while bit 4 is high
+        (cia402_modes.EdgeStartMode). The low level `base_cw` first when bit 4 is high or not
+        known (always with START_EDGE_LOW_ALWAYS) and the controlword -> statusword delay, so
+        the drive sees the edge; then `base_cw | bits`."""
+        cw = self.cia.controlword
+        if self.START_EDGE_LOW_ALWAYS or cw is None or cw & CW_BIT_NEW_SET_POINT:
+            self.cia.write(base_cw)
+            yield self.CW_SW_DELAY_S
+        self.cia.write(base_cw | bits)
+
+    def _homing_started(self, mode: HomingMode) -> None | Steps[None]:
+        """After the homing start edge: wait until the statusword no longer says "not started"
+        (bits 13/12/10, `mode.started`); DriveError when it still does after
+        HANDSHAKE_TIMEOUT_S."""
+        met, sw = yield from self.cia.wait_for(mode.started, self.HANDSHAKE_TIMEOUT_S)
+        if not met:
+            raise DriveError(f'home: homing did not start (status word bits 13/12/10 still '
+                             f'"not started"): {cia402.describe(sw)}')
 
     @property
     def motion_sent_t(self) -> float | None:

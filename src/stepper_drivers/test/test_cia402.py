@@ -9,7 +9,7 @@ import time
 
 import pytest
 
-from stepper_drivers import cia402
+from stepper_drivers import cia402, cia402_modes
 from stepper_drivers.drive import DriveError, HomingState, State, complete
 
 SOD, RTSO, SO, OE = (State.SWITCH_ON_DISABLED, State.READY_TO_SWITCH_ON, State.SWITCHED_ON,
@@ -360,3 +360,37 @@ def test_closing_a_step_wise_operation_writes_nothing():
     assert drive.cws == [0x06]
     steps.close()                                 # a stop or a link loss cuts it short
     assert drive.cws == [0x06]                    # nothing more went to the drive
+
+
+# ------------------------------------------------------------------ mode objects (cia402_modes)
+@pytest.mark.parametrize('mode, cw, stop', [
+    # profile position, velocity, homing: Halt (bit 8) on the enable operation commanded
+    (cia402_modes.ProfilePositionMode(), 0x003F, 0x013F),
+    (cia402_modes.ProfileVelocityMode(), 0x001F, 0x011F),
+    (cia402_modes.HomingMode(), 0x001F, 0x011F),
+    # not an enable operation (or unknown): from 0x000F
+    (cia402_modes.ProfilePositionMode(), 0x0006, 0x010F),
+    (cia402_modes.HomingMode(), None, 0x010F),
+    # interpolated position: bit 4 low ends the interpolation (bits 4-6 and 8 low) ...
+    (cia402_modes.InterpolatedPositionMode(), 0x001F, 0x000F),
+    (cia402_modes.InterpolatedPositionMode(), 0x011F, 0x000F),
+    # ... and with bit 4 low already there is none: Halt
+    (cia402_modes.InterpolatedPositionMode(), 0x000F, 0x010F),
+])
+def test_a_mode_s_stop_controlword(mode, cw, stop):
+    assert mode.stop_controlword(cw) == stop
+
+
+@pytest.mark.parametrize('word, started', [
+    (0x0437, False),     # bits 13/12/10 = 0/0/1: not started (or interrupted)
+    (0x0037, True),      # 0/0/0: in progress
+    (0x1437, True),      # 0/1/1: attained
+    (0x2037, True),      # 1/0/0: error
+])
+def test_homing_mode_started_from_bits_13_12_10(word, started):
+    assert cia402_modes.HomingMode().started(word) is started
+
+
+def test_interpolated_position_active_is_statusword_bit_12():
+    ip = cia402_modes.InterpolatedPositionMode()
+    assert ip.code == 7 and ip.active(0x1037) and not ip.active(0x0037)

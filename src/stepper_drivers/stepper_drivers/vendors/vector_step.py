@@ -40,6 +40,7 @@ from typing import Any, Mapping
 from .. import cia402, param_rules
 from ..cia402 import CW_BIT_NEW_SET_POINT, CW_ENABLE_OPERATION
 from ..cia402_drive import Cia402Drive
+from ..cia402_modes import HomingMode, InterpolatedPositionMode, Mode, ProfilePositionMode
 from ..drive import (Bus, DriveError, DriveState, Homing, HomingState, IdentityError,
                      InterpolatingDrive, LinkError, Motion, ParamSpec, State, Steps, Vendor,
                      register_type)
@@ -170,6 +171,29 @@ def validate(params: Mapping[str, Any]) -> list[str]:
             name, view, int(bus['can.master_heartbeat_ms']), float(bus['can.sync_period_s'])))
 
 
+class JogMode(Mode):
+    """AEC velocity mode (JOG, -1) [MODES OF OPERATION]: the manual's own mode, no CiA 402 one.
+    Controlword [CONTROLWORD] bit 4 "1 = Start, 0 = Stop" (a level, not an edge), bit 5 the
+    direction, bit 6 the speed taken continuously; statusword [STATUSWORD] bit 12 "1 = Motore
+    fermo"."""
+
+    code = vm.MODE_JOG
+    name = vm.MODE_NAMES[vm.MODE_JOG]
+    START_BIT = 'start (a level: 0 = stop)'
+    SW_BIT_12 = 'motor stopped'
+
+    def stops_by_start_bit(self, cw: int) -> bool:
+        return True           # "0 = Stop": the level is written again in every case
+
+    def run_controlword(self, reverse: bool) -> int:
+        cw = CW_ENABLE_OPERATION | vm.CW_BIT_JOG_START | vm.CW_BIT_JOG_SPEED_CONTINUOUS
+        return cw | vm.CW_BIT_JOG_CCW if reverse else cw   # CCW = negative counting (assumption)
+
+    def stopped(self, sw: int) -> bool:
+        """Stopped by the drive (bit 12), and the theoretical motion is over (bit 8)."""
+        return bool(sw & vm.SW_BIT_JOG_STOPPED) and not sw & vm.SW_BIT_MOTOR_MOVING
+
+
 class VectorStepDrive(Cia402Drive, InterpolatingDrive):
     """One Vector Step on a CAN bus (node-ID = parameter `node_id`)."""
 
@@ -184,6 +208,8 @@ class VectorStepDrive(Cia402Drive, InterpolatingDrive):
     DISABLE_LEAVES = (State.SWITCH_ON_DISABLED, State.FAULT, State.FAULT_REACTION_ACTIVE,
                       State.NOT_READY_TO_SWITCH_ON)
     NOT_ENABLED_TEXT = '{what}: the drive is not enabled ({state}); call enable first'
+    # [MODES OF OPERATION]: PP, homing, interpolated position and the AEC JOG; no PV (0x6502)
+    MODES = (ProfilePositionMode(), HomingMode(), InterpolatedPositionMode(), JogMode())
 
     def __init__(self, bus: Bus, name: str, params: Mapping[str, Any]):
         params = VENDOR.with_defaults(params)
@@ -791,21 +817,21 @@ class VectorStepDrive(Cia402Drive, InterpolatingDrive):
         """The mode this driver sent last (0x6060) and the drive shows (0x6061, TxPDO1)."""
         return self._mode_cmd == mode and self._value(vm.MODES_OF_OPERATION_DISPLAY) == mode
 
-    def _switch_mode(self, mode: int, what: str, current: int | None) -> Steps[None]:
+    def _switch_mode(self, mode: Mode, what: str, current: int | None) -> Steps[None]:
         """0x6060 by RxPDO1 (with the controlword that holds OPERATION ENABLED, bits 4-6 low),
         then wait until 0x6061 (TxPDO1) shows it."""
-        self._command(CW_ENABLE_OPERATION, mode=mode)
+        self._command(CW_ENABLE_OPERATION, mode=mode.code)
         ok = yield from self.link.wait(
-            lambda: self._value(vm.MODES_OF_OPERATION_DISPLAY) == mode,
+            lambda: self._value(vm.MODES_OF_OPERATION_DISPLAY) == mode.code,
             self.MODE_SWITCH_TIMEOUT_S)
         if not ok:                           # no TxPDO1 on the change: ask once by SDO
             display = int(self.link.read(vm.MODES_OF_OPERATION_DISPLAY))
             self._values()[vm.MODES_OF_OPERATION_DISPLAY] = display
-            ok = display == mode
+            ok = display == mode.code
         if not ok:
             raise DriveError(f'{self._prefix()}modes of operation display 0x6061 shows '
                              f'{self._value(vm.MODES_OF_OPERATION_DISPLAY)} after writing 0x6060 '
-                             f'= {mode} ({vm.MODE_NAMES[mode]})')
+                             f'= {mode.code} ({mode.name})')
 
     # ------------------------------------------------------------------ motion
     def _rps100(self, velocity_steps_s: float, index: int, sub: int, what: str) -> int:
@@ -840,16 +866,14 @@ class VectorStepDrive(Cia402Drive, InterpolatingDrive):
             raise DriveError('profile velocity is 0: the move would not run')
         acceleration, deceleration = self._profile(motion)
         self._require_enabled('move')
-        yield from self._ensure_mode(vm.MODE_PROFILE_POSITION)
+        pp = yield from self._ensure_mode(vm.MODE_PROFILE_POSITION)
         self._homing = HomingState.IDLE
         yield from self._write_once((vm.PROFILE_VELOCITY, 0, velocity),
                                     (vm.PROFILE_ACCELERATION, 0, acceleration),
                                     (vm.PROFILE_DECELERATION, 0, deceleration))
         self._target = target
-        # New set-point, change set immediately (bit 5), absolute (bit 6 = 0): the handshake of
-        # CiA 402 on bits 4 / 12 [CONTROLWORD], [STATUSWORD].
-        yield from self.cia.start_set_point(CW_ENABLE_OPERATION, relative=False, immediate=True,
-                                            timeout_s=self.HANDSHAKE_TIMEOUT_S)
+        # the new-set-point handshake of CiA 402 on bits 4 / 12 [CONTROLWORD], [STATUSWORD]
+        yield from pp.start(self)
 
     def set_velocity(self, velocity_steps_s: float, motion: Motion) -> Steps[None]:
         units = self._rps100(velocity_steps_s, vm.PROFILE_VELOCITY, 0, 'velocity')
@@ -872,16 +896,12 @@ class VectorStepDrive(Cia402Drive, InterpolatingDrive):
             return
         acceleration, deceleration = self._profile(motion)
         self._require_enabled('velocity')
-        yield from self._ensure_mode(vm.MODE_JOG)
+        jog_mode = yield from self._ensure_mode(vm.MODE_JOG)
         self._homing = HomingState.IDLE
         yield from self._write_once((vm.PROFILE_ACCELERATION, 0, acceleration),
                                     (vm.PROFILE_DECELERATION, 0, deceleration))
-        cw = CW_ENABLE_OPERATION | vm.CW_BIT_JOG_START | vm.CW_BIT_JOG_SPEED_CONTINUOUS
-        if velocity_steps_s < 0:
-            cw |= vm.CW_BIT_JOG_CCW                 # CCW = negative counting (assumption)
-        sw = self._read_statusword()
-        if self._cw & vm.CW_BIT_JOG_START and sw & vm.SW_BIT_JOG_STOPPED and \
-                not sw & vm.SW_BIT_MOTOR_MOVING:
+        cw = jog_mode.run_controlword(reverse=velocity_steps_s < 0)
+        if self._cw & vm.CW_BIT_JOG_START and jog_mode.stopped(self._read_statusword()):
             # Stopped by the drive (limit switch, STOP, mode change) with bit 4 still high:
             # a low level first, so that "1 = Start" starts again.
             self._command(CW_ENABLE_OPERATION)
@@ -894,13 +914,12 @@ class VectorStepDrive(Cia402Drive, InterpolatingDrive):
         sw = self._read_statusword()
         if cia402.decode_state(sw) != State.OPERATION_ENABLED:
             return
-        mode = self._value(vm.MODES_OF_OPERATION_DISPLAY)
-        if mode == vm.MODE_JOG and not quick:
-            self._command(CW_ENABLE_OPERATION)       # JOG: bit 4 = 0 is the stop, on 0x6084
-        elif mode == vm.MODE_INTERPOLATED and self._cw & vm.CW_BIT_IP_ENABLE and not quick:
-            # IP: bit 4 = 0 disables the interpolation (CiA 402; the manual has no IP column);
-            # the drive stops from its last segment (the simulator on the 0x605D stop ramp).
-            self._command(CW_ENABLE_OPERATION)
+        mode = self.modes.get(self._value(vm.MODES_OF_OPERATION_DISPLAY))
+        if mode is not None and mode.stops_by_start_bit(self._cw) and not quick:
+            # JOG: bit 4 = 0 is the stop, on 0x6084. IP: bit 4 = 0 disables the interpolation
+            # (CiA 402; the manual has no IP column); the drive stops from its last segment (the
+            # simulator on the 0x605D stop ramp).
+            self._command(mode.stop_controlword(self._cw))
         else:
             # No halt bit (CW bit 8 is reserved): the AEC command register, one bit per write.
             self.link.write(vm.RCMDWR, vm.AEC_SUB, vm.RCMDWR_ABORT if quick else vm.RCMDWR_STOP)
@@ -955,7 +974,7 @@ class VectorStepDrive(Cia402Drive, InterpolatingDrive):
         if self._cw & vm.CW_BIT_IP_ENABLE:       # bit 4 low first: the enable is its rise
             self._command(CW_ENABLE_OPERATION)
             yield 0.0
-        yield from self._ensure_mode(vm.MODE_INTERPOLATED)
+        ip_mode = yield from self._ensure_mode(vm.MODE_INTERPOLATED)
         sw = self._barrier()                     # the frames before are handled: at rest?
         if sw & vm.SW_BIT_MOTOR_MOVING or cia402.decode_state(sw) != State.OPERATION_ENABLED:
             raise DriveError(f'interpolation: the drive is not enabled at rest '
@@ -964,9 +983,7 @@ class VectorStepDrive(Cia402Drive, InterpolatingDrive):
         position = int(self.link.read(vm.POSITION_ACTUAL_VALUE))
         if self.link.emcy is not None and self.link.emcy.code in vm.IP_EMCY_CODES:
             self.link.emcy = None                # an earlier run's alarm
-        self._command(CW_ENABLE_OPERATION | vm.CW_BIT_IP_ENABLE)
-        ok = yield from self.link.wait(
-            lambda: self._read_statusword() & vm.SW_BIT_IP_ACTIVE, IP_START_TIMEOUT_S)
+        ok, _ = yield from ip_mode.start(self, IP_START_TIMEOUT_S)   # bit 4 up, bit 12 by TxPDO
         if not ok:
             sw = self._barrier()
             if not sw & vm.SW_BIT_IP_ACTIVE:
@@ -1039,23 +1056,26 @@ class VectorStepDrive(Cia402Drive, InterpolatingDrive):
                 logger.warning('%shoming: %s', self._prefix(), warning)
                 note += f'; warning: {warning}'
             yield 0.0
-        yield from self._ensure_mode(vm.MODE_HOMING)
+        homing_mode = yield from self._ensure_mode(vm.MODE_HOMING)
         self.link.write(vm.HOMING_METHOD, 0, method)          # raw AEC number, not the library's
         yield 0.0
         yield from self._write_once((vm.HOMING_SPEEDS, 1, search), (vm.HOMING_SPEEDS, 2, zero),
                                     (vm.HOMING_ACCELERATION, 0, acceleration))
         self.link.write(vm.HOME_OFFSET, 0, offset)             # position forced after homing
-        if self._cw & CW_BIT_NEW_SET_POINT:
-            self._command(CW_ENABLE_OPERATION)
         yield 0.0
         if self.link.emcy is not None and self.link.emcy.code in vm.HOME_ERROR_CODES:
             self.link.emcy = None
-        self._command(CW_ENABLE_OPERATION | vm.CW_BIT_HOMING_START)   # rising edge starts
-        self._homing = HomingState.RUNNING
-        self._barrier()
+        yield from homing_mode.start(self)       # bit 4 rising edge starts, then _homing_started
         if offset:
             note += f'; position after homing {offset} steps (0x607C)'
         return note
+
+    def _homing_started(self, mode: HomingMode) -> None:
+        """The manual ties no "not started" meaning to bits 13/12/10 (bit 10 during homing is
+        not documented): no check; the statusword by SDO returns once the drive has handled the
+        start edge."""
+        self._homing = HomingState.RUNNING
+        self._barrier()
 
     # ------------------------------------------------------------------ maintenance
     def fault_reset(self) -> Steps[str]:

@@ -21,11 +21,11 @@ import time
 from typing import Any, Mapping, Sequence
 
 from .. import cia402, param_rules
-from ..cia402 import (CW_BIT_CHANGE_SET_IMMEDIATELY, CW_BIT_HALT, CW_BIT_NEW_SET_POINT,
-                      CW_ENABLE_OPERATION, SW_BIT_FOLLOWING_ERROR, SW_BIT_INTERNAL_LIMIT,
-                      SW_BIT_TARGET_REACHED, SW_BIT_VOLTAGE_ENABLED, SW_BIT_WARNING,
-                      SW_BIT_ZERO_SPEED)
+from ..cia402 import (CW_BIT_HALT, CW_BIT_NEW_SET_POINT, SW_BIT_FOLLOWING_ERROR,
+                      SW_BIT_INTERNAL_LIMIT, SW_BIT_TARGET_REACHED, SW_BIT_VOLTAGE_ENABLED,
+                      SW_BIT_WARNING, SW_BIT_ZERO_SPEED)
 from ..cia402_drive import Cia402Drive
+from ..cia402_modes import HomingMode, Mode, ProfilePositionMode, ProfileVelocityMode
 from ..drive import (Bus, DriveError, DriveState, Homing, HomingState, IdentityError, Motion,
                      ParamSpec, State, Steps, Vendor, register_type)
 from ..protocol.modbus import RawRegisterRules, parse_raw_register
@@ -65,6 +65,7 @@ _RAW_REGISTERS = RawRegisterRules(
     read_only='{reg} is read-only (RO)')          # App.1's spelling of the access
 _NO_SUCH_REGISTER = (0x01, 0x02)   # ILLEGAL FUNCTION / ILLEGAL DATA ADDRESS
 _REFUSED = (0x01, 0x02, 0x03)      # ... and ILLEGAL DATA VALUE: the device says no
+_HALT = Mode()                     # a mode whose stop is Halt (bit 8): every X-PLUS MT mode
 
 
 class XplusMtDrive(Cia402Drive):
@@ -75,6 +76,11 @@ class XplusMtDrive(Cia402Drive):
     CW_SW_DELAY_S = 0.012      # §13 "Register 1001" note: >= 12 ms before checking the SW
     ENABLE_TIMEOUT_S = 1.5     # the 3 steps + HV "at least 500 ms before" transition 3 (§12)
     STATUSWORD_READ_IS_TRANSACTION = True     # every statusword read is an FC03 of 1001
+    # §12 "Mode of Operation", §13 "Register 1041": 1, 3, 6
+    MODES = (ProfilePositionMode(), ProfileVelocityMode(), HomingMode())
+    # The start edges (homing, PV) write 0x000F first in every case: it also clears bits 5/6 of
+    # a profile position handshake before them.
+    START_EDGE_LOW_ALWAYS = True
 
     def __init__(self, bus: Bus, name: str, params: Mapping[str, Any]):
         params = VENDOR.with_defaults(params)
@@ -385,13 +391,13 @@ class XplusMtDrive(Cia402Drive):
         """`current`: 1002 as read by _require_enabled just before (the step that read it)."""
         return current == mode
 
-    def _switch_mode(self, mode: int, what: str, current: int | None) -> Steps[None]:
+    def _switch_mode(self, mode: Mode, what: str, current: int | None) -> Steps[None]:
         state = self.read_state()
         if state.moving:
             raise DriveError(f'{what}: the drive is moving in {state.mode or f"mode {current}"};'
                              f' stop first (modes change at standstill only)')
         yield 0.0
-        yield from self._set_mode(mode)
+        yield from self._set_mode(mode.code)
         self.cia.controlword = None
 
     def _release_halt(self) -> Steps[None]:
@@ -418,7 +424,7 @@ class XplusMtDrive(Cia402Drive):
                              'for a move (§13 "Multi-Set-Point Mode" limit 3)')
         target = self._checked('TARGET_POSITION', target_steps, 'move_to: target ')
         mode = self._require_enabled('move_to')    # one FC03 for the state and the mode
-        yield from self._ensure_mode(xm.MODE_PROFILE_POSITION, 'move_to', mode)
+        pp = yield from self._ensure_mode(xm.MODE_PROFILE_POSITION, 'move_to', mode)
         # 1042..1047 contiguous: one FC16 for target, velocity and acceleration (§11: a 32-bit
         # value is committed when its second word is written; all pairs complete in one request).
         self._write(('TARGET_POSITION', target), ('PROFILE_VELOCITY', velocity),
@@ -426,16 +432,14 @@ class XplusMtDrive(Cia402Drive):
         yield 0.0
         yield from self._wait_settled()
         yield from self._release_halt()
-        yield from self.cia.start_set_point(
-            CW_ENABLE_OPERATION | CW_BIT_CHANGE_SET_IMMEDIATELY, relative=False, immediate=True,
-            timeout_s=self.HANDSHAKE_TIMEOUT_S)
+        yield from pp.start(self)
 
     def set_velocity(self, velocity_steps_s: float, motion: Motion) -> Steps[None]:
         _, accel, decel = self._motion_values(motion, 'set_velocity')
         # A8: signed, negative = reverse
         velocity = self._checked('TARGET_VELOCITY', velocity_steps_s, 'set_velocity: ')
         mode = self._require_enabled('set_velocity')
-        yield from self._ensure_mode(xm.MODE_PROFILE_VELOCITY, 'set_velocity', mode)
+        pv = yield from self._ensure_mode(xm.MODE_PROFILE_VELOCITY, 'set_velocity', mode)
         self._write(('PROFILE_ACCELERATION', accel), ('TARGET_VELOCITY', velocity),
                     ('PROFILE_DECELERATION', decel))
         cw = self.cia.controlword
@@ -444,9 +448,7 @@ class XplusMtDrive(Cia402Drive):
             # A10: PV follows Target Velocity in OE after a bit-4 rising edge (bit 4 held).
             yield 0.0
             yield from self._wait_settled()
-            self.cia.write(CW_ENABLE_OPERATION)
-            yield self.CW_SW_DELAY_S
-            self.cia.write(CW_ENABLE_OPERATION | CW_BIT_NEW_SET_POINT)
+            yield from pv.start_edge(self)
 
     def stop(self, quick: bool = False) -> None:
         """One FC03 and at most one FC06: the urgent path waits for nothing."""
@@ -458,10 +460,9 @@ class XplusMtDrive(Cia402Drive):
             return
         if state != State.OPERATION_ENABLED:
             return
-        cw = self.cia.controlword
-        if cw is None or cw & 0x000F != CW_ENABLE_OPERATION:
-            cw = CW_ENABLE_OPERATION
-        self.cia.write(cw | CW_BIT_HALT)     # decelerates with the mode's deceleration
+        # Halt (bit 8) stops a run in each of the modes (§13 "Register 1040" bit 8), with the
+        # mode's deceleration: which one the drive is in needs no read.
+        self.cia.write(_HALT.stop_controlword(self.cia.controlword))
 
     def start_homing(self, homing: Homing) -> Steps[str]:
         method = int(homing.method)
@@ -497,21 +498,14 @@ class XplusMtDrive(Cia402Drive):
                 raise DriveError(f'home: method {method} uses the encoder index, but '
                                  f'FOLLOWING_ERROR_REACTION_CODE (1085) = 17 (motor without '
                                  f'encoder)')
-        yield from self._ensure_mode(xm.MODE_HOMING, 'home', mode)
+        homing_mode = yield from self._ensure_mode(xm.MODE_HOMING, 'home', mode)
         self._write(*writes)
         self._homed = False
         yield 0.0
         yield from self._wait_settled()
         yield from self._release_halt()
-        base = CW_ENABLE_OPERATION
-        self.cia.write(base)                         # bit 4 low, so the next write is an edge
-        yield self.CW_SW_DELAY_S
-        self.cia.write(base | CW_BIT_NEW_SET_POINT)  # homing start, held high while homing
-        met, sw = yield from self.cia.wait_for(
-            lambda s: cia402.homing_state(s) != HomingState.IDLE, self.HANDSHAKE_TIMEOUT_S)
-        if not met:
-            raise DriveError(f'home: homing did not start (status word bits 13/12/10 still '
-                             f'"not started"): {cia402.describe(sw)}')
+        # homing start: bit 4 rising edge held high while homing, then "homing started"
+        yield from homing_mode.start(self)
         return ''
 
     # ------------------------------------------------------------------ maintenance
