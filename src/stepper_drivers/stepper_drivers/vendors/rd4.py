@@ -51,7 +51,7 @@ from .. import param_rules
 from ..protocol import serial_port
 from ..protocol.modbus import RawRegisterRules, parse_raw_register
 from ..protocol.modbus_rtu import (BITS_PER_CHAR, ILLEGAL_DATA_ADDRESS, ILLEGAL_FUNCTION,
-                                    ModbusExceptionError, ModbusRtuBus)
+                                    ModbusExceptionError, ModbusRtuBus, frame_time_s)
 from . import rd4_map as rm, rd4_scan
 from .rd4_map import HR, IR
 
@@ -408,8 +408,16 @@ class Rd4Drive(Drive):
     def read_state(self) -> Steps[DriveState]:
         first, count = rm.STATE_BLOCK
         epoch = self._epoch
+        asked = time.monotonic()
         w = self._read_input(first, count)
         now = time.monotonic()
+        # When the position was true: the unit took the block after the whole request reached it
+        # and before its reply went out, so at least the reply's own transmission before the
+        # reply arrived (FC04: 8 bytes asked, 5 + 2 a register answered; §7.3.1 11 bits a
+        # character), and not before the request was out. A write later in the poll (below)
+        # does not make the position younger.
+        measured_at_s = min(now, max(asked + frame_time_s(8, self.rtu.baudrate),
+                                     now - frame_time_s(5 + 2 * count, self.rtu.baudrate)))
         alarms, sw = w[0], w[1]
         self._examine(alarms, sw)
         self._state_seen = None if alarms else (now, epoch)
@@ -469,7 +477,7 @@ class Rd4Drive(Drive):
             homing=self._homing, fault=bool(fault_bits), fault_code=alarms if fault_bits else 0,
             fault_text=rm.describe_alarms(alarms, wrong) if fault_bits else '',
             alarms=tuple(names), mode=mode, status_word=sw, position_steps=position,
-            velocity_steps_s=velocity, effort=current_ma / 1000.0)
+            velocity_steps_s=velocity, effort=current_ma / 1000.0, measured_at_s=measured_at_s)
 
     # ---------------------------------------------------------------------- power stage
     def enable(self) -> Steps[None]:
