@@ -89,8 +89,8 @@ class Axis:
     def sample(self) -> tuple[float, float]:
         """(position, when it was true): the last poll's position and the bus owner's state
         time (the poll's end, or the drive's own measurement time, DriveState.measured_at_s)."""
-        slot = self.sup.slots[self.drive_name]
-        return float(slot.state.position_steps), slot.state_t
+        state, t = self.sup.slots[self.drive_name].sample
+        return float(state.position_steps), t
 
     def moving(self) -> bool:
         return bool(self.sup.slots[self.drive_name].state.moving)

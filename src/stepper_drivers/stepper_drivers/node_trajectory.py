@@ -283,18 +283,19 @@ class TrajectoryInterface:
         for joint in run.traj.joints:
             h = self._handle(joint)
             # desired at the time of the snapshot `actual` comes from (up to a poll period old):
-            # the error is then the drive's following error, not the age of the snapshot
-            t = h.slot.state_t
+            # the error is then the drive's following error, not the age of the snapshot. The
+            # snapshot and its time are read once (the owner thread replaces them meanwhile).
+            s, t = h.slot.sample
             positions, velocities = run.desired(t)
             want = h.conv.from_steps(positions[joint])
             want_v = h.conv.from_steps(velocities[joint])
-            s = h.state
+            have = h.conv.from_steps(s.position_steps)
             have_v = h.conv.from_steps(s.velocity_steps_s) if s.velocity_valid else math.nan
             d.positions.append(float(want))
             d.velocities.append(float(want_v))
-            a.positions.append(float(h.position))
+            a.positions.append(float(have))
             a.velocities.append(float(have_v))
-            e.positions.append(float(want - h.position))
+            e.positions.append(float(want - have))
             e.velocities.append(float(want_v - have_v))
         fb.desired, fb.actual, fb.error = d, a, e
 

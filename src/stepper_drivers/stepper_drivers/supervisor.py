@@ -125,7 +125,9 @@ class Slot:
         self.name = name
         self.drive = drive
         self.state = DriveState(state=State.DISCONNECTED)
-        self.state_t = 0.0           # clock() of the poll that read `state`
+        # (the last polled state, clock() when its position was true), set in one assignment:
+        # a reader in another thread takes both from it, never a state with another's time
+        self.sample: tuple[DriveState, float] = (self.state, 0.0)
         self.connected = False
         self.identity: dict[str, str] = {}
         self.polls = 0               # successful read_state() results
@@ -645,7 +647,8 @@ class BusSupervisor:
         slot.state = state
         slot.drive.state_fresh_s = self._period_s()      # (the rate can change at run time)
         # when the position was true (the trajectory feedback compares the plan at that time)
-        slot.state_t = self.clock() if state.measured_at_s is None else state.measured_at_s
+        slot.sample = (state, self.clock() if state.measured_at_s is None
+                       else state.measured_at_s)
         slot.polls += 1
         self._resolve_waiters(slot, True)
         self._cycle_polled.add(slot.name)

@@ -582,21 +582,23 @@ def test_a_confirmation_does_not_disarm_a_velocity_accepted_after_it(bus):
 
 
 def test_the_state_time_is_when_the_drive_says_its_position_was_true(bus):
-    """slot.state_t (the time the trajectory feedback evaluates the plan at) is the drive's
-    `measured_at_s` where it gives one (a Vector Step position held back by the inhibit time),
-    else the end of the poll."""
+    """slot.sample's time (the time the trajectory feedback evaluates the plan at) is the
+    drive's `measured_at_s` where it gives one (a Vector Step position held back by the inhibit
+    time), else the end of the poll; its state is the one that poll read."""
     sup, line, drives = bus(1)
     slot = sup.slots['axis1']
     measured = time.monotonic() - 0.123
     drives['axis1'].measured_at_s = measured
     polls = slot.polls
     wait_for(lambda: slot.polls > polls + 1, 4 / RATE_HZ, 'a poll with measured_at_s')
-    assert slot.state_t == measured
+    state, t = slot.sample
+    assert t == measured and state.measured_at_s == measured
     drives['axis1'].measured_at_s = None
     t0 = time.monotonic()
     polls = slot.polls
     wait_for(lambda: slot.polls > polls + 1, 4 / RATE_HZ, 'a poll without')
-    assert t0 <= slot.state_t <= time.monotonic()
+    state, t = slot.sample
+    assert t0 <= t <= time.monotonic() and state.measured_at_s is None
 
 
 def test_when_polls_overrun_every_drive_gets_its_turn(bus):
