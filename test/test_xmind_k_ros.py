@@ -233,8 +233,11 @@ def test_garbled_and_lost_replies_are_survived(bench):
     bench.status('axis2', lambda m: not m.moving and m.position_steps == -637,
                  timeout_s=15.0, what='axis2 at -2 rad')
     history = bench.ros.history[f'{NODE}/axis2/status']
-    lost = [m for m in history if m.header.stamp.sec >= before.header.stamp.sec
-            and not m.connected]
+    # the statuses since the enable, by the whole stamp: the start-up's DISCONNECTED may share
+    # the enable's second
+    since = (before.header.stamp.sec, before.header.stamp.nanosec)
+    lost = [m for m in history
+            if (m.header.stamp.sec, m.header.stamp.nanosec) >= since and not m.connected]
     assert not lost, f'{lost[0]}\n{bench.node.output()[-3000:]}'
     assert bench.fresh_true_steps('axis2') == pytest.approx(-637, abs=0.5)
 
