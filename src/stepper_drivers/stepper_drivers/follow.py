@@ -245,16 +245,18 @@ class Run:
             # passes the point; one that is there, or was on plan at its last snapshot (on a
             # serial line up to a poll period old: waiting for a newer one would make every
             # segment late), takes the new target at once (on the way where its drive can: RD4
-            # position override, X-PLUS MT and Vector Step change set immediately). A drive that
-            # takes no command while it runs (X-MIND K) waits in until_ready_for_move for a run
-            # that ends.
+            # position override, X-PLUS MT and Vector Step change set immediately). An axis with
+            # no move of this run yet is on no way of this run's: a run that takes over from
+            # another sends its first moves at once, whatever the old run's move is doing. A
+            # drive that takes no command while it runs (X-MIND K) waits in
+            # until_ready_for_move for a run that ends.
             end_t = self.start_t + seg.end_s
             waiting = [m for m in seg.moves if m.joint not in self.streamed]
             while waiting:
                 for move in list(waiting):
                     axis = self.follower.axes[move.joint]
-                    if clock() < end_t and self._still_on_the_way(
-                            axis, seg_t, previous[move.joint], before.get(move.joint)):
+                    if clock() < end_t and move.joint in before and self._still_on_the_way(
+                            axis, seg_t, previous[move.joint], before[move.joint]):
                         continue
                     self._jobs.append(axis.sup.submit(axis.drive_name, Command.move(
                         self._move_job(axis, move, previous[move.joint], seg_t, end_t),
@@ -296,8 +298,7 @@ class Run:
                 return _aborted(GOAL_TOLERANCE_VIOLATED, '; '.join(far))
             self._cancel.wait(TICK_S)
 
-    def _still_on_the_way(self, axis: Axis, seg_t: float, target: float,
-                          start: float | None) -> bool:
+    def _still_on_the_way(self, axis: Axis, seg_t: float, target: float, start: float) -> bool:
         """The axis is short of `target` (its last move's, from `start`) by more than
         ARRIVED_FRACTION of that move's distance: as a snapshot since seg_t shows it moving, or,
         where the last snapshot is older, as that one was behind the plan by as much (then the
@@ -305,8 +306,7 @@ class Run:
         position, at = axis.sample()
         if not axis.moving():
             return False
-        distance = abs(target - start) if start is not None else 0.0
-        short = max(ARRIVED_STEPS, ARRIVED_FRACTION * distance)
+        short = max(ARRIVED_STEPS, ARRIVED_FRACTION * abs(target - start))
         if at >= seg_t:
             return abs(target - position) > short
         if abs(self.desired_steps(at)[axis.joint] - position) <= short:

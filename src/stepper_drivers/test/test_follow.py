@@ -179,3 +179,20 @@ def test_the_path_is_checked_against_the_plan_when_the_position_was_true(rig):
     outcome = run.done.result(5.0)
     assert outcome.code == SUCCESSFUL, outcome.text
     assert true_steps(sim, 'j1') == pytest.approx(32_000, abs=2)
+
+
+def test_a_newer_trajectory_sends_its_first_move_at_the_take_over(rig):
+    """j1 runs at speed on the old trajectory's move, away from where the old plan had it at the
+    take-over: the newer trajectory's move reaches the drive within a poll and a move's
+    transactions (about four, and one on the way), not when its first segment ends."""
+    sim, sup, follower = rig
+    follower.follow(build(['j1'], [2.0], [[40_000]], known=JOINTS))
+    wait_for(lambda: true_steps(sim, 'j1') > 10_000, 2.0, 'j1 under way')
+    sent = time.monotonic()
+    new = follower.follow(build(['j1'], [1.0], [[0]], known=JOINTS))
+    drive = sim.drives['axis1']
+    wait_for(lambda: drive._pp_target == 0.0, POLL_S + 5 * TRANSACTION_S,
+             "the newer trajectory's target at the drive")
+    assert time.monotonic() - sent < 1.0
+    assert new.done.result(3.0).status == 'succeeded'
+    assert abs(true_steps(sim, 'j1')) <= 2
