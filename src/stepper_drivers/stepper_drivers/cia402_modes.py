@@ -142,9 +142,3 @@ class InterpolatedPositionMode(Mode):
     def stops_by_start_bit(self, cw: int) -> bool:
         """Bit 4 low stops a run; with bit 4 low already there is no run for it to stop."""
         return bool(cw & CW_BIT_NEW_SET_POINT)
-
-    def start(self, drive: Cia402Drive, timeout_s: float) -> Steps[tuple[bool, int]]:
-        """Bit 4 up (the caller wrote it low before), then wait for statusword bit 12; (active,
-        the last statusword)."""
-        drive.cia.write(CW_ENABLE_OPERATION | CW_BIT_NEW_SET_POINT)
-        return (yield from drive.cia.wait_for(self.active, timeout_s))

@@ -983,7 +983,11 @@ class VectorStepDrive(Cia402Drive, InterpolatingDrive):
         position = int(self.link.read(vm.POSITION_ACTUAL_VALUE))
         if self.link.emcy is not None and self.link.emcy.code in vm.IP_EMCY_CODES:
             self.link.emcy = None                # an earlier run's alarm
-        ok, _ = yield from ip_mode.start(self, IP_START_TIMEOUT_S)   # bit 4 up, bit 12 by TxPDO
+        # bit 4 up, then bit 12 from TxPDO1 as the receive thread records it (no CW->SW delay
+        # first: the start must leave the owner in time for the first point, two SYNCs on)
+        self._command(CW_ENABLE_OPERATION | vm.CW_BIT_IP_ENABLE)
+        ok = yield from self.link.wait(lambda: ip_mode.active(self._read_statusword()),
+                                       IP_START_TIMEOUT_S)
         if not ok:
             sw = self._barrier()
             if not sw & vm.SW_BIT_IP_ACTIVE:
