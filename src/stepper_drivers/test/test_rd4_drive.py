@@ -46,12 +46,13 @@ MOTION = Motion(velocity_steps_s=800.0, acceleration_steps_s2=1000.0,
 
 
 class Rig:
-    def __init__(self, tmp_path, units=None, options=None, **drive_params):
+    def __init__(self, tmp_path, units=None, options=None, line_timing=False, **drive_params):
         self.frames = []
         tmp_path.mkdir(exist_ok=True)
         units = units or [Rd4DriveSim('axis1', 1, options=options),
                           Rd4DriveSim('axis2', 2, 'T48', options=options)]
         self.line = RtuLine(units, tmp_path / 'rd4.pty', baud_switch=0x03,
+                            line_timing=line_timing,
                             tap=lambda d, frame, t: self.frames.append((d, frame, t)))
         self.line.start()
         self.bus = rd4.make_bus({'port': str(tmp_path / 'rd4.pty'), 'baudrate': 19200,
@@ -740,28 +741,18 @@ def test_transport_failures_are_one_line_link_errors(tmp_path):
         line.stop()
 
 
-def test_a_polled_position_is_dated_when_the_unit_took_it_not_when_the_poll_ended(tmp_path):
+def test_a_polled_position_is_dated_when_the_unit_took_it_not_when_the_poll_ended(rig):
     """With the line's timing, the request of the state block (FC04, 8 bytes) takes 4.6 ms and
     its reply (8 registers, 21 bytes) 11 ms at 19200 baud: the position was true after the
     request was out and at least the reply's transmission before the poll ended."""
-    line = RtuLine([Rd4DriveSim('axis1', 1)], tmp_path / 'rd4.pty', baud_switch=0x03,
-                   line_timing=True)
-    line.start()
-    bus = rd4.make_bus({'port': str(tmp_path / 'rd4.pty'), 'baudrate': 19200, 'parity': 'N',
-                        'timeout_s': 0.2})
-    bus.open()
-    try:
-        drive = rd4.make_drive(bus, 'axis1', {'node_id': 1, 'steps_per_rev': 1024.0})
-        complete(drive.connect())
-        request_s = rtu.frame_time_s(8, 19200)
-        reply_s = rtu.frame_time_s(5 + 2 * rm.STATE_BLOCK[1], 19200)
-        for _ in range(3):
-            asked = time.monotonic()
-            state = complete(drive.read_state())
-            done = time.monotonic()
-            assert state.measured_at_s is not None
-            assert asked + request_s <= state.measured_at_s <= done - reply_s, \
-                (asked, state.measured_at_s, done)
-    finally:
-        bus.close()
-        line.stop()
+    drive = rig(line_timing=True).drives['axis1']
+    complete(drive.connect())
+    request_s = rtu.frame_time_s(8, 19200)
+    reply_s = rtu.frame_time_s(5 + 2 * rm.STATE_BLOCK[1], 19200)
+    for _ in range(3):
+        asked = time.monotonic()
+        state = complete(drive.read_state())
+        done = time.monotonic()
+        assert state.measured_at_s is not None
+        assert asked + request_s <= state.measured_at_s <= done - reply_s, \
+            (asked, state.measured_at_s, done)
