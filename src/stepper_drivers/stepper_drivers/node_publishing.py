@@ -49,9 +49,14 @@ class StatePublisher:
         self._js_due = 0.0
         self._js_cdr: JointStateCdr | None = None     # the joint names, encoded once
         self._js_handles: list[DriveHandle] = []
+        # (handles, their states, positions, velocities, efforts) of the last joint_states:
+        # the values again while the states are equal (idle drives)
+        self._js_values: tuple = ((), (), (), (), None)
         self._diag_lock = threading.Lock()     # /diagnostics: the owner threads take turns
         self._diag_due = 0.0
         self._diag_kv: dict[str, dict[str, KeyValue]] = {}     # status name -> key -> KeyValue
+        # drive name -> (what its DiagnosticStatus is made of, the status): sent again as is
+        self._diag_drive: dict[str, tuple[tuple, DiagnosticStatus]] = {}
         self.status_pubs = {}
 
     def create_publishers(self) -> None:
@@ -83,11 +88,11 @@ class StatePublisher:
         if not self.node.context.ok():
             self._answer_publish_waiters(waiting, False)
             return
-        stamp = None
+        stamp = pair = None
         now = time.monotonic()
         if self._joint_states_due(sup, now) or waiting:
-            stamp = self.stamp()
-            self._publish_joint_states(stamp)
+            pair = self.stamp_pair()
+            self._publish_joint_states(*pair)
         # A status goes out when something in it changed, and at status_rate_hz otherwise:
         # at 50 Hz the messages of idle drives cost more CPU than polling them.
         counters = None
@@ -98,7 +103,7 @@ class StatePublisher:
             if counters is None:
                 counters = sup.bus.counters()
             if stamp is None:
-                stamp = self.stamp()
+                stamp = TimeMsg(sec=pair[0], nanosec=pair[1]) if pair else self.stamp()
             self.status_pubs[h.name].publish(self._status_msg(h, stamp, counters))
             h.status_key = key
             h.status_due = now + 1.0 / self.node.bus_params['status_rate_hz']
@@ -125,14 +130,21 @@ class StatePublisher:
             self.publish_diagnostics()
 
     def stamp(self) -> TimeMsg:
-        """The node clock's now as a message. Without simulated time that is the system
+        """The node clock's now as a message."""
+        sec, nanosec = self.stamp_pair()
+        return TimeMsg(sec=sec, nanosec=nanosec)
+
+    def stamp_pair(self) -> tuple[int, int]:
+        """The node clock's now as (sec, nanosec). Without simulated time that is the system
         clock, read directly: rclpy's Clock.now().to_msg() cost 60 us a cycle on the owner's
-        cold cache, half of it for a Time object thrown away."""
+        cold cache, half of it for a Time object thrown away; the joint_states, encoded by
+        hand, need no message at all."""
         clock = self.node.get_clock()      # a node's clock is ROS_TIME: system time unless ...
         if clock.clock_type != ClockType.ROS_TIME or clock.ros_time_is_active:
-            return clock.now().to_msg()            # ... use_sim_time: the /clock topic's time
-        ns = time.time_ns()
-        return TimeMsg(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+            ns = clock.now().nanoseconds           # ... use_sim_time: the /clock topic's time
+        else:
+            ns = time.time_ns()
+        return ns // 1_000_000_000, ns % 1_000_000_000
 
     def _joint_states_due(self, sup: 'BusSupervisor', now: float) -> bool:
         """One joint_states for the node's drives once every bus that has a connected drive
@@ -148,7 +160,7 @@ class StatePublisher:
             self._js_due = now + 1.0 / self.node.bus_params['publish_rate_hz']
             return True
 
-    def _publish_joint_states(self, stamp) -> None:
+    def _publish_joint_states(self, sec: int, nanosec: int) -> None:
         """One JointState for every drive of the node, as CDR bytes published raw (encoded
         under _js_lock: owner threads of several buses take turns): rclpy's message path cost
         about 100 us more per message on the owner's cold cache (joint_state_cdr.py; the
@@ -159,19 +171,22 @@ class StatePublisher:
                 handles = self._js_handles = list(self.node.handles.values())
                 cdr = self._js_cdr = JointStateCdr([h.cfg.joint_name for h in handles])
             states = [h.slot.state for h in handles]
-            self.joint_pub.publish(cdr.encode(
-                stamp.sec, stamp.nanosec,
-                [h.conv.from_steps(s.position_steps) for h, s in zip(handles, states)],
-                [h.conv.from_steps(s.velocity_steps_s) if s.velocity_valid else math.nan
-                 for h, s in zip(handles, states)],
-                [float(s.effort) for s in states]
-                if all(s.effort is not None for s in states) else None))
+            last = self._js_values
+            if last[0] is not handles or last[1] != states:
+                last = self._js_values = (
+                    handles, states,
+                    [h.conv.from_steps(s.position_steps) for h, s in zip(handles, states)],
+                    [h.conv.from_steps(s.velocity_steps_s) if s.velocity_valid else math.nan
+                     for h, s in zip(handles, states)],
+                    [float(s.effort) for s in states]
+                    if all(s.effort is not None for s in states) else None)
+            self.joint_pub.publish(cdr.encode(sec, nanosec, *last[2:]))
 
     def _status_key(self, h: 'DriveHandle') -> tuple:
         """The status fields that make a new status worth sending (not the link counters)."""
-        s = h.state
-        return (s, h.slot.connected, h.slot.not_driven, h.commands_refused, h.last_refusal,
-                h.sup.watchdog_armed(h.name), h.sup.bus.health())
+        slot = h.slot
+        return (slot.state, slot.connected, slot.not_driven, h.commands_refused,
+                h.last_refusal, slot.velocity_deadline is not None, h.sup.bus.health())
 
     def _status_msg(self, h: 'DriveHandle', stamp, counters: dict[str, int]) -> DriveStatus:
         s = h.state
@@ -233,6 +248,13 @@ class StatePublisher:
             arr.status.append(link)
         for h in self.node.handles.values():
             s = h.state
+            key = (h.drive, s, h.slot.not_driven, h.connected, h.slot.last_error,
+                   h.commands_refused, h.last_refusal, h.sup.watchdog_armed(h.name),
+                   h.slot.identity)
+            last = self._diag_drive.get(h.name)
+            if last is not None and last[0] == key:
+                arr.status.append(last[1])
+                continue
             d = DiagnosticStatus(name=f'{self.node.get_name()}: {h.name}',
                                  hardware_id=f'{self.node.vendor.name} {h.drive.address}')
             if h.slot.not_driven:
@@ -256,6 +278,7 @@ class StatePublisher:
                   'velocity_watchdog': 'armed' if h.sup.watchdog_armed(h.name) else 'idle',
                   **h.slot.identity}
             d.values = self.key_values(d.name, kv.items())
+            self._diag_drive[h.name] = (key, d)
             arr.status.append(d)
         self.diag_pub.publish(arr)
 

@@ -194,6 +194,7 @@ class BusSupervisor:
         self._last_cycle_t = 0.0
         self._grid_t0 = clock()
         self._idle = False          # the owner waits on _cv (under _cv)
+        self._events = 0            # _notify() calls: what other threads asked for (under _cv)
         self._closed = False        # _shutdown_drives ran: the drives stopped, the bus closed
         self.cycles = 0
 
@@ -241,7 +242,7 @@ class BusSupervisor:
                         tail.future.set_exception(Superseded(
                             f'{tail.label}: replaced by the newer {label} before it was sent'))
                 slot.queue.append(job)
-            self._cv.notify()
+            self._notify()
         if job.taken is not None:
             job.taken.wait(HAND_OVER_MAX_S)
         return fut
@@ -252,7 +253,7 @@ class BusSupervisor:
             slot = self.slots[drive]
             slot.velocity_deadline = self.clock() + self.settings['command_timeout_s']
             slot.arm_seq += 1
-            self._cv.notify()
+            self._notify()
 
     def watchdog_armed(self, drive: str) -> bool:
         return self.slots[drive].velocity_deadline is not None
@@ -263,7 +264,7 @@ class BusSupervisor:
         with self._cv:
             slot = self.slots[drive]
             slot.next_poll_t = min(slot.next_poll_t, self.clock())
-            self._cv.notify()
+            self._notify()
 
     def wait_poll(self, drive: str, timeout_s: float, callback: Callable[[bool], None]) -> None:
         """Call callback(True) from the owner thread after the next poll of `drive`, or
@@ -272,7 +273,7 @@ class BusSupervisor:
         with self._cv:
             if not self._stopping:
                 self.slots[drive].poll_waiters.append((self.clock() + timeout_s, callback))
-                self._cv.notify()
+                self._notify()
                 return
         callback(False)
 
@@ -283,7 +284,7 @@ class BusSupervisor:
         with self._cv:
             if not self._stopping:
                 self._timers.append((self.clock() + delay_s, callback))
-                self._cv.notify()
+                self._notify()
                 return
         callback()
 
@@ -299,11 +300,17 @@ class BusSupervisor:
         Runs in the owner thread; this call waits for it."""
         with self._cv:
             self._shutdown_request = (standstill_timeout_s, set(disable))
-            self._cv.notify()
+            self._notify()
         if self._thread.is_alive():
             self._thread.join(join_timeout_s)
         elif not self._closed:   # never started (tests, a node that failed to start): do it here
             self._shutdown_drives(standstill_timeout_s, set(disable))
+
+    def _notify(self) -> None:
+        """(Under _cv, from another thread) wake the owner: a job, a timer, a waiter or a
+        request came. A pass of polls ends at it (`_poll_due`)."""
+        self._events += 1
+        self._cv.notify()
 
     # ------------------------------------------------------------------------ owner thread
     def _log_event(self, level: str, drive: str, text: str) -> None:
@@ -437,21 +444,29 @@ class BusSupervisor:
         return self._next_wake(now) - now
 
     def _poll_due(self, dues: list[Slot], now: float) -> None:
-        """The longest-due drive's poll; then, while each poll read a cache (a drive with
-        `state_from_cache` whose read_state returned at once, no transaction) and no urgent job
-        or command came meanwhile, the other such drives due in the same pass: a cycle of
-        cached polls takes one pass of the owner, not one per drive. A poll on the wire ends
-        the pass, as every transaction does."""
+        """The longest-due drive's poll; then the other drives due in the same pass, while
+        nothing else is to be done: no other thread asked for anything meanwhile (a job, an
+        urgent one, a timer, a waiter: `_events`) and, once a poll went on the wire (which takes
+        a transaction's time), none of the owner's own events is due (`_next_event_t`: a
+        watchdog deadline, a step, a reconnect). A cycle's polls take one pass of the owner,
+        not one per drive; a poll that continues step-wise or loses its drive ends the pass.
+        A command waits for at most the one transaction in flight, as between passes."""
         dues.sort(key=lambda s: s.next_poll_t)
+        events = self._events
+        horizon: float | None = None
         for k, slot in enumerate(dues):
-            if k and (not slot.drive.state_from_cache or self._urgent
-                      or self._new_command_ready()):
+            if k and (self._urgent or self._events != events):
                 return
             transactions = self.bus.transactions
             self._poll_step(slot, now)
-            if not slot.drive.state_from_cache or slot.poll_steps is not None \
-                    or not slot.connected or self.bus.transactions != transactions:
+            if slot.poll_steps is not None or not slot.connected:
                 return
+            if not slot.drive.state_from_cache or self.bus.transactions != transactions:
+                now = self.clock()                   # a poll on the wire: time passed
+                if horizon is None:
+                    horizon = self._next_event_t()
+                if now >= horizon:
+                    return
 
     def _by_age(self) -> list[Slot]:
         if not any(s.queue for s in self.slots.values()):   # the usual case: no lock taken
@@ -472,17 +487,24 @@ class BusSupervisor:
         return self._grid_t0 + (math.floor((now - self._grid_t0) / period) + 1) * period
 
     def _next_wake(self, now: float) -> float:
-        times = [now + 0.5]
-        if not any(s.connected for s in self.slots.values()):
+        times = [now + 0.5, self._next_event_t()]
+        if not any(s.connected for s in self._slot_list):
             times.append(self._last_cycle_t + self._period_s())
-        for s in self.slots.values():
+        times += [s.next_poll_t for s in self._slot_list
+                  if s.connected and (s.active is None or s.active.polled)]
+        return min(times)
+
+    def _next_event_t(self) -> float:
+        """When the owner next has something to do other than a due poll: a step of an
+        operation or of a poll, a watchdog deadline, a reconnect, a timer, a waiter's
+        time-out (math.inf: nothing)."""
+        times = [math.inf]
+        for s in self._slot_list:
             if s.active is not None and s.active_steps is not None:
                 times.append(s.wake_t)
             if s.poll_steps is not None:
                 times.append(s.poll_wake_t)
             if s.connected:
-                if s.active is None or s.active.polled:
-                    times.append(s.next_poll_t)
                 if s.velocity_deadline is not None:
                     times.append(max(s.velocity_deadline, s.watchdog_retry_t))
             elif (not s.not_driven or s.identity_recheck) and s.active is None:
@@ -652,8 +674,19 @@ class BusSupervisor:
         slot.polls += 1
         self._resolve_waiters(slot, True)
         self._cycle_polled.add(slot.name)
-        if all(s.name in self._cycle_polled for s in self.slots.values() if s.connected):
+        if self._cycle_done():
             self._cycle()
+
+    def _cycle_done(self) -> bool:
+        """Every connected drive was polled in this cycle. Polls go in the order of the slots,
+        so the last ones are looked at first: one look a poll, not one a drive."""
+        polled = self._cycle_polled
+        if len(polled) == len(self._slot_list):
+            return True
+        for s in reversed(self._slot_list):
+            if s.connected and s.name not in polled:
+                return False
+        return True
 
     def _cycle(self) -> None:
         """Every connected drive was polled once (or none is connected): publish."""
@@ -811,7 +844,7 @@ class BusSupervisor:
         """From any thread: stop driving `name` (the owner drops its link at its next turn)."""
         with self._cv:
             self.slots[name].not_driven, self.slots[name].identity_recheck = why, False
-            self._cv.notify()
+            self._notify()
         self.on_event('error', name, f'not driven: {why}')
 
     def recheck(self, name: str) -> concurrent.futures.Future:

@@ -66,6 +66,7 @@ class ScriptDrive(Drive):
         self.velocity = 0.0
         self.enabled = True
         self.measured_at_s = None              # DriveState.measured_at_s of the next polls
+        self.on_read = None          # called once, inside the next read_state()
 
     def _tx(self, call, *args):
         exc = self.fail.pop(call, None) or self.fail_always.get(call)
@@ -79,6 +80,9 @@ class ScriptDrive(Drive):
 
     def read_state(self):
         self._tx('read_state')
+        if self.on_read is not None:
+            on_read, self.on_read = self.on_read, None
+            on_read()
         return DriveState(state=State.OPERATION_ENABLED, enabled=self.enabled,
                           moving=self.velocity != 0.0, velocity_steps_s=self.velocity,
                           measured_at_s=self.measured_at_s)
@@ -305,10 +309,6 @@ class CachedDrive(ScriptDrive):
 
     state_from_cache = True
 
-    def __init__(self, bus, name, params=None):
-        super().__init__(bus, name, params)
-        self.on_read = None          # called once, inside the next read_state()
-
     def read_state(self):
         with self.line.lock:
             self.line.wire.append((time.monotonic(), self.name, 'cached read', ()))
@@ -321,7 +321,7 @@ class CachedDrive(ScriptDrive):
 def test_cached_polls_of_a_cycle_run_together_and_an_urgent_job_still_goes_between():
     """Drives whose state is a cache are polled one after the other in one pass of the owner,
     every one once per cycle; an urgent job that comes during that pass goes before the next
-    poll, and a poll on the wire ends the pass."""
+    poll."""
     line = Line()
     drives = {f'axis{i}': CachedDrive(line, f'axis{i}') for i in range(1, 5)}
     sup = BusSupervisor(line, drives, {'publish_rate_hz': RATE_HZ, 'command_timeout_s': 0.3,
@@ -348,6 +348,37 @@ def test_cached_polls_of_a_cycle_run_together_and_an_urgent_job_still_goes_betwe
         assert after_stop[:3] == ['axis2', 'axis3', 'axis4'], after_stop
     finally:
         sup.shutdown(0.5)
+
+
+def test_a_command_during_a_cycles_polls_goes_out_after_the_poll_in_flight(bus):
+    """The polls of a cycle on the wire run back to back in one pass of the owner; a command
+    that comes during one of them is the next transaction, before the cycle's other polls."""
+    sup, line, d = bus(n_drives=4)          # 4 polls of TX_S in a period of 5 TX_S
+    d['axis1'].on_read = lambda: sup.submit(
+        'axis4', Command(COMMAND, lambda: d['axis4'].move_to(100, None), 'move'))
+    wait_for(lambda: line.calls('axis4', 'move_to'), 2.0, 'the move sent')
+    (move,) = line.calls('axis4', 'move_to')
+    read = [w for w in line.calls('axis1', 'read_state') if w[0] < move[0]][-1]
+    assert [w for w in line.calls() if read[0] < w[0] < move[0]] == []
+
+
+def test_a_watchdog_deadline_during_a_cycles_polls_stops_before_the_next_poll(bus):
+    """A watchdog deadline that falls due while the polls of a cycle run back to back stops the
+    drive after the poll in flight, not after the cycle: it is armed at the end of a cycle's
+    polls to fall due within the first poll of the next cycle."""
+    period_s = 1.0 / RATE_HZ
+    sup, line, d = bus(n_drives=4, command_timeout_s=period_s - 3.5 * TX_S)
+    deadlines = []
+
+    def arm():
+        sup.arm_watchdog('axis1')
+        deadlines.append(sup.slots['axis1'].velocity_deadline)
+    d['axis4'].on_read = arm
+    wait_for(lambda: line.calls('axis1', 'stop'), 2.0, 'the watchdog stop')
+    stop = line.calls('axis1', 'stop')[0]
+    late = [w for w in line.calls(call='read_state') if deadlines[0] <= w[0] < stop[0]]
+    # at most the poll whose turn was checked a moment before the deadline
+    assert len(late) <= 1, late
 
 
 def test_a_long_operation_gives_the_bus_to_the_other_drives(bus):

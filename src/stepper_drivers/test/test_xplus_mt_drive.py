@@ -306,6 +306,23 @@ def test_read_state_transactions(tmp_path, strict, per_poll):
         s.stop()
 
 
+def test_an_idle_drive_gives_its_snapshot_again_and_a_change_a_new_one(sim, axis1):
+    """Polls that read the same words give the last snapshot again, not a new decode; a new
+    position, an enable, a disable each give a new snapshot that says so."""
+    axis1.read_state()
+    idle = axis1.read_state()                # (the position before is now the same too)
+    assert axis1.read_state() is idle and axis1.read_state() is idle
+    sim.drives['axis1'].axis.motion.set_position(1_000)
+    moved = axis1.read_state()
+    assert moved is not idle and moved.position_steps == 1_000 and idle.position_steps == 0
+    complete(axis1.enable())
+    assert axis1.read_state().state == State.OPERATION_ENABLED
+    complete(axis1.disable())
+    st = axis1.read_state()
+    assert st.state == State.SWITCH_ON_DISABLED and not st.alarms      # no "possible STO"
+    assert axis1.read_state() is axis1.read_state()
+
+
 def test_link_loss_raises_link_error(sim, axis1):
     sim.inject_fault('axis1', 'no_reply')
     with pytest.raises(LinkError, match=r'127.0.0.1:\d+ unit 1: FC03 .*no answer within 0.5 s'):

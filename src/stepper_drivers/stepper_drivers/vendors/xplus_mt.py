@@ -97,8 +97,9 @@ class XplusMtDrive(Cia402Drive):
         self._homed = False
         self._current_on_at: float | None = None
         self._settle_s = SETTLE_MIN_S
-        self._last_pos: tuple[int, float] | None = None
-        self._last_velocity = 0.0
+        self._last_position: int | None = None     # of the last poll (the velocity's sign)
+        # (what read_state decoded, the DriveState): an idle drive's poll is one comparison
+        self._snapshot: tuple[tuple, DriveState | None] = ((), None)
         self._was_enabled = False
         self._watchdog_armed = False
 
@@ -206,7 +207,8 @@ class XplusMtDrive(Cia402Drive):
         self._watchdog_armed = self.watchdog_ms > 0
         self.cia.controlword = None
         self._homed = False
-        self._last_pos = None
+        self._last_position = None
+        self._snapshot = ((), None)
         self._current_on_at = None
         sw = self._read_statusword()
         if cia402.decode_state(sw) == State.OPERATION_ENABLED:
@@ -254,8 +256,13 @@ class XplusMtDrive(Cia402Drive):
         return out
 
     def read_state(self) -> DriveState:
+        """The state from words 1001..1021. The last snapshot again while nothing it is made of
+        changed (the words, the position before them, the homed and enabled flags): an idle
+        drive's poll is one transaction and one comparison, not a decode."""
         w = self._read_state_words()
-        now = time.monotonic()
+        key = (w, self._last_position, self._homed, self._was_enabled)
+        if key == self._snapshot[0]:
+            return self._snapshot[1]
         order = self.word_order
         sw = w[0]                                                       # 1001
         mode = w[1] - 0x10000 if w[1] & 0x8000 else w[1]                # 1002 I16
@@ -265,9 +272,9 @@ class XplusMtDrive(Cia402Drive):
         state = cia402.decode_state(sw)
         # A8: the tables give Velocity Actual Value min 0 although PV reverses; the register is
         # decoded as signed I32, and a non-negative value while the position falls is negated.
-        if self._last_pos is not None and velocity > 0 and position < self._last_pos[0]:
+        if self._last_position is not None and velocity > 0 and position < self._last_position:
             velocity = -velocity
-        self._last_pos = (position, now)
+        self._last_position = position
         enabled = state == State.OPERATION_ENABLED
         torque = state in (State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE)
         reached = bool(sw & SW_BIT_TARGET_REACHED)
@@ -302,11 +309,13 @@ class XplusMtDrive(Cia402Drive):
         if self._was_enabled and state == State.SWITCH_ON_DISABLED and code == 0:
             # spec §9.2: STO (S4) has no error code; OE lost without a command or fault.
             alarms.append('torque disabled without a command or fault (possible STO)')
-        return DriveState(
+        snapshot = DriveState(
             state=state, enabled=enabled, moving=bool(moving), target_reached=reached,
             homed=self._homed, homing=homing, fault=fault, fault_code=code if fault else 0,
             fault_text=fault_text, alarms=tuple(alarms), mode=xm.MODES.get(mode, ''),
             status_word=sw, position_steps=position, velocity_steps_s=velocity)
+        self._snapshot = (key, snapshot)
+        return snapshot
 
     @staticmethod
     def _error_text(code: int) -> str:
