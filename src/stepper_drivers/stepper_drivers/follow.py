@@ -258,9 +258,12 @@ class Run:
                     if clock() < end_t and move.joint in before and self._still_on_the_way(
                             axis, seg_t, previous[move.joint], before[move.joint]):
                         continue
-                    self._jobs.append(axis.sup.submit(axis.drive_name, Command.move(
-                        self._move_job(axis, move, previous[move.joint], seg_t, end_t),
-                        f'trajectory segment to {move.target_steps:g} steps')))
+                    with self.follower.submit_lock:
+                        if self._replaced_at is not None and clock() >= self._replaced_at:
+                            return _aborted(SUCCESSFUL, REPLACED)
+                        self._jobs.append(axis.sup.submit(axis.drive_name, Command.move(
+                            self._move_job(axis, move, previous[move.joint], seg_t, end_t),
+                            f'trajectory segment to {move.target_steps:g} steps')))
                     before[move.joint] = previous[move.joint]
                     previous[move.joint] = move.target_steps
                     waiting.remove(move)
@@ -437,6 +440,10 @@ class Follower:
         self.axes = axes
         self.clock = clock
         self._lock = threading.Lock()
+        # Held while a run checks that it is not replaced and submits a move, and while the
+        # joints a newer run does not name are stopped at its take-over: a replaced run's move
+        # is either queued before that stop (which drops it, or cuts it short) or not sent.
+        self.submit_lock = threading.Lock()
         self.current: Run | None = None
         self._streams: dict[int, Stream] = {}
 
@@ -501,8 +508,9 @@ class Follower:
 
     def _stop_later(self, joints: list[str], t: float) -> None:
         def stop():
-            for j in joints:
-                self.stop_axis(self.axes[j], 'held: not in the newer trajectory')
+            with self.submit_lock:
+                for j in joints:
+                    self.stop_axis(self.axes[j], 'held: not in the newer trajectory')
         delay = t - self.clock()
         if delay <= 0:
             stop()
