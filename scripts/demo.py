@@ -341,36 +341,36 @@ class Demo:
                 sec=int(t), nanosec=int(round((t - int(t)) * 1e9)))))
         self.say(f'[{vendor}] two-axis trajectory {joints}: '
                  + ', '.join(f'({a:+.1f}, {b:+.1f}) at {t:g} s' for t, a, b in TRAJECTORY))
+        # Not destroyed here: an action client destroyed while the spin thread runs, even by a
+        # task of its own executor, can still be in the wait set that executor is working
+        # through, and rclpy then takes from a freed handle (TypeError in take_goal_response)
+        # and the spin thread dies for every vendor. It goes with the node, after the spin
+        # thread stopped (RosClient.close).
         client = ActionClient(self.ros.node, FollowJointTrajectory,
                               f'/{node}/follow_joint_trajectory')
-        try:
-            if not self.check(client.wait_for_server(timeout_sec=10),
-                              f'{vendor}: no follow_joint_trajectory'):
-                return
-            start = time.monotonic()
-            goal = self.ros.in_spin(client.send_goal_async,
-                                    FollowJointTrajectory.Goal(trajectory=msg))
-            handle = self._future(goal, 10.0)
-            if not self.check(handle is not None and handle.accepted,
-                              f'{vendor}: trajectory goal not accepted'):
-                return
-            with self.lock:
-                self.trajectories[vendor] = dict(labels=labels, start=start, end=None)
-            result = self._future(self.ros.in_spin(handle.get_result_async),
-                                  TRAJECTORY[-1][0] + 15.0)
-            end = time.monotonic()
-            with self.lock:
-                self.trajectories[vendor]['end'] = end
-            for label in labels:
-                self.phase(label, 'trajectory', start, end)
-            ok = result is not None and result.result.error_code == 0
-            text = result.result.error_string if result is not None else 'no result'
-            if self.check(ok, f'{vendor}: trajectory: {text}'):
-                self.say(f'[{vendor}] trajectory done: {text}')
-        finally:
-            # in the spin thread: destroyed from another one while the executor waits on it,
-            # rclpy fails the wait set ('action client pointer is invalid') and stops spinning
-            self.ros.in_spin(client.destroy)
+        if not self.check(client.wait_for_server(timeout_sec=10),
+                          f'{vendor}: no follow_joint_trajectory'):
+            return
+        start = time.monotonic()
+        goal = self.ros.in_spin(client.send_goal_async,
+                                FollowJointTrajectory.Goal(trajectory=msg))
+        handle = self._future(goal, 10.0)
+        if not self.check(handle is not None and handle.accepted,
+                          f'{vendor}: trajectory goal not accepted'):
+            return
+        with self.lock:
+            self.trajectories[vendor] = dict(labels=labels, start=start, end=None)
+        result = self._future(self.ros.in_spin(handle.get_result_async),
+                              TRAJECTORY[-1][0] + 15.0)
+        end = time.monotonic()
+        with self.lock:
+            self.trajectories[vendor]['end'] = end
+        for label in labels:
+            self.phase(label, 'trajectory', start, end)
+        ok = result is not None and result.result.error_code == 0
+        text = result.result.error_string if result is not None else 'no result'
+        if self.check(ok, f'{vendor}: trajectory: {text}'):
+            self.say(f'[{vendor}] trajectory done: {text}')
 
     def _future(self, fut, timeout_s: float):
         done = threading.Event()
