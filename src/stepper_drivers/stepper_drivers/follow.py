@@ -238,7 +238,7 @@ class Run:
             problem = self._wait_until(seg_t)
             if problem is not None:
                 return problem
-            if self._replaced_at is not None and clock() >= self._replaced_at:
+            if self._replaced():
                 return _aborted(SUCCESSFUL, REPLACED)
             # The moves go out back to back. An axis still on its way to the point before (it
             # arrived late, _still_on_the_way) gets its move once it stands there, so that it
@@ -259,7 +259,7 @@ class Run:
                             axis, seg_t, previous[move.joint], before[move.joint]):
                         continue
                     with self.follower.submit_lock:
-                        if self._replaced_at is not None and clock() >= self._replaced_at:
+                        if self._replaced():
                             return _aborted(SUCCESSFUL, REPLACED)
                         self._jobs.append(axis.sup.submit(axis.drive_name, Command.move(
                             self._move_job(axis, move, previous[move.joint], seg_t, end_t),
@@ -362,10 +362,14 @@ class Run:
                 return None
             self._cancel.wait(min(left, TICK_S))
 
+    def _replaced(self) -> bool:
+        """A newer trajectory has taken over by now."""
+        return self._replaced_at is not None and self.follower.clock() >= self._replaced_at
+
     def _check(self) -> Outcome | None:
         if self._cancel.is_set():
             return Outcome('canceled', SUCCESSFUL, self._cancel_why or 'canceled')
-        if self._replaced_at is not None and self.follower.clock() >= self._replaced_at:
+        if self._replaced():
             return _aborted(SUCCESSFUL, REPLACED)
         for fut in self._jobs:
             if fut.done() and fut.exception() is not None:

@@ -103,7 +103,8 @@ class StatePublisher:
             if counters is None:
                 counters = sup.bus.counters()
             if stamp is None:
-                stamp = TimeMsg(sec=pair[0], nanosec=pair[1]) if pair else self.stamp()
+                pair = pair or self.stamp_pair()
+                stamp = TimeMsg(sec=pair[0], nanosec=pair[1])
             self.status_pubs[h.name].publish(self._status_msg(h, stamp, counters))
             h.status_key = key
             h.status_due = now + 1.0 / self.node.bus_params['status_rate_hz']
@@ -186,7 +187,7 @@ class StatePublisher:
         """The status fields that make a new status worth sending (not the link counters)."""
         slot = h.slot
         return (slot.state, slot.connected, slot.not_driven, h.commands_refused,
-                h.last_refusal, slot.velocity_deadline is not None, h.sup.bus.health())
+                h.last_refusal, h.sup.watchdog_armed(h.name), h.sup.bus.health())
 
     def _status_msg(self, h: 'DriveHandle', stamp, counters: dict[str, int]) -> DriveStatus:
         s = h.state
