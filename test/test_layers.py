@@ -27,7 +27,7 @@ ROS = ('rclpy', 'ament_index_python', 'rcl_interfaces', 'launch', 'launch_ros',
 # ROS-free modules under the vendors: the contract, CiA 402, units, rules, planning, supervisor,
 # what the bus scanners share
 CORE = ('drive', 'cia402', 'cia402_drive', 'cia402_modes', 'units', 'param_rules', 'trajectory',
-        'commands', 'supervisor', 'follow', 'scanning')
+        'commands', 'supervisor', 'poll_group', 'follow', 'scanning')
 # protocol modules that are transports (a bus, a line): the simulators do not use them
 TRANSPORTS = ('canopen_link', 'xmind_k_bus', 'ascii_line', 'modbus_tcp')
 

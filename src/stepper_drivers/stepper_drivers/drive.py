@@ -200,6 +200,11 @@ class Bus(abc.ABC):
         """Link counters shown in status and diagnostics; vendors may add their own keys."""
         return {'transactions': self.transactions, 'errors': self.errors}
 
+    # A bus whose requests can be sent now and their replies taken later without blocking
+    # (`send_request(request)`, `take_reply(request)` -> reply or None, `fileno()`): the node
+    # then polls the drives of several such buses from one thread (poll_group.PollGroup).
+    nonblocking_polls: bool = False
+
     def health(self) -> tuple[str, str] | None:
         """Trouble of the link itself that its drives' states do not show (a CAN controller's
         error frames, bus-off): ('warn' or 'error', text), or None. The node raises the
@@ -247,6 +252,15 @@ class Drive(abc.ABC):
 
     @abc.abstractmethod
     def read_state(self) -> DriveState: ...
+
+    def state_requests(self) -> list[Any]:
+        """The requests on a `nonblocking_polls` bus whose replies read_state() decodes
+        (state_from_replies), or []: read_state() only, in the bus owner."""
+        return []
+
+    def state_from_replies(self, replies: list[Any]) -> DriveState:
+        """read_state() from the replies to state_requests(), taken by someone else."""
+        raise NotImplementedError
 
     # Power stage ----------------------------------------------------------------------------
     @abc.abstractmethod
@@ -362,7 +376,8 @@ class Vendor:
     drive_defaults: Mapping[str, Any] = dataclasses.field(default_factory=dict)
     # Per-drive parameters that choose the drive's link (X-PLUS MT: 'host', 'port'): a drive
     # that sets one ('' and 0 mean "as the bus-level parameter of the same name") gets a bus of
-    # its own, with its own owner thread; drives with equal values share one bus.
+    # its own, with its own owner thread (and polls lent to one poll group where the bus has
+    # nonblocking_polls); drives with equal values share one bus.
     drive_bus_params: tuple[str, ...] = ()
     # The check of a whole configuration (bus and every drive's params): one line per problem,
     # naming the parameter. Run by the node at start-up, after the per-parameter checks.

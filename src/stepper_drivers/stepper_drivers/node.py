@@ -1,8 +1,9 @@
 """DriveNode: the one ROS layer every vendor node shares (docs/interface.md): a thin adapter.
 
 Each bus has one owner thread (`supervisor.BusSupervisor`, no rclpy) that makes every call into
-the vendor code: polls, commands, reconnects, the velocity watchdog and shutdown. This module only
-turns ROS into jobs and snapshots into ROS:
+the vendor code: polls, commands, reconnects, the velocity watchdog and shutdown; a node with
+several links that poll without blocking (X-PLUS MT hosts) lends their idle periodic polls to one
+thread (`poll_group.PollGroup`). This module only turns ROS into jobs and snapshots into ROS:
 - Command subscriptions check a command against the limits and the latest snapshot and enqueue
   it; they never wait. They belong to a hidden companion node (`_<node>_commands`, the pattern of
   tf2_ros's TransformListener) served by an executor thread of its own, whose wait set holds
@@ -12,9 +13,9 @@ turns ROS into jobs and snapshots into ROS:
 - Services and actions are async callbacks: they enqueue a job and `await` its result (and then
   the polls they need) without holding an executor thread, so one SingleThreadedExecutor serves
   the node and a stop is never queued behind a homing (node_services.DriveServices).
-- The owner threads publish joint_states and status after each poll cycle of their bus, and
-  /diagnostics when it is due: the executor has no timer and sleeps until a command comes
-  (node_publishing.StatePublisher).
+- The owner threads (or the poll group) publish joint_states and status after each poll cycle
+  of their bus, and /diagnostics when it is due: the executor has no timer and sleeps until a
+  command comes (node_publishing.StatePublisher).
 - process.py runs the node: signals, the executor thread, the order of shutdown.
 
 DriveNode is one rclpy Node. This module holds its construction, parameters, command topics and
@@ -49,6 +50,7 @@ from .node_publishing import StatePublisher, settle
 from .node_services import DriveServices
 from .node_trajectory import TrajectoryInterface
 from .commands import Command, CommandRefused
+from .poll_group import PollGroup
 from .supervisor import BusSupervisor, Cancelled, Slot, Superseded
 
 # On shutdown, how long a controlled stop may take before the power stage is disabled anyway.
@@ -150,6 +152,7 @@ class DriveNode(Node):
         self.accepting = not managed
         self.handles: dict[str, DriveHandle] = {}
         self.supervisors: list[BusSupervisor] = []
+        self.poll_group: PollGroup | None = None
         self.by_joint: dict[str, DriveHandle] = {}
         self._interfaces = False
         self._identities: dict[tuple[str, str], str] = {}    # (key, value) -> drive
@@ -247,6 +250,11 @@ class DriveNode(Node):
             for name in drives:
                 self.handles[name].sup = sup
             self.supervisors.append(sup)
+        # several links that can poll without blocking (X-PLUS MT hosts): one thread polls
+        # the idle ones (poll_group.py)
+        self.poll_group = None
+        if len(self.supervisors) > 1 and all(s.bus.nonblocking_polls for s in self.supervisors):
+            self.poll_group = PollGroup(self.supervisors, on_event=self._on_event)
 
     def _command_subscription(self, msg_type, topic: str, callback) -> None:
         """A command topic of this node (its name resolved and remapped as this node's own),
@@ -338,6 +346,8 @@ class DriveNode(Node):
     def start(self) -> None:
         for sup in self.supervisors:
             sup.start()
+        if self.poll_group is not None:
+            self.poll_group.start()
 
     # ------------------------------------------------------------------------------- commands
     def refuse(self, h: DriveHandle, why: str) -> None:

@@ -1,9 +1,10 @@
 """What a DriveNode publishes: /joint_states, each drive's status, /diagnostics.
 
-The bus owner threads publish (supervisor.BusSupervisor's on_cycle): joint_states and the
-statuses after each poll cycle of their bus, and /diagnostics when it is due; the executor has
-no timer and sleeps until a command comes. A service or action that awaits the publication of a
-change (DriveNode.published) is answered here, by the owner thread that published it.
+The bus owner threads publish (supervisor.BusSupervisor's on_cycle; the poll group's thread for
+the owners whose polls it made, poll_group.py): joint_states and the statuses after each poll
+cycle of their bus, and /diagnostics when it is due; the executor has no timer and sleeps until a
+command comes. A service or action that awaits the publication of a change (DriveNode.published)
+is answered here, by the thread that published it.
 """
 
 from __future__ import annotations

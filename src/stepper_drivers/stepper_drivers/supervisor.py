@@ -72,6 +72,9 @@ MAX_JOBS_BEFORE_OVERDUE_POLL = 4
 WATCHDOG_RETRY_S = 0.1
 # submit(hand_over=True) to a sleeping owner waits at most this long for it to take the job [s].
 HAND_OVER_MAX_S = 0.002
+# An owner whose drives a poll group polls (poll_group.py) polls them itself once a poll is this
+# late, or two poll periods if longer: the group is late or gone.
+GROUP_GRACE_S = 0.25
 
 
 class Superseded(DriveError):
@@ -152,6 +155,9 @@ class Slot:
         self.arm_seq = 0             # velocity commands accepted so far (arm_watchdog calls)
         self.watchdog_retry_t = 0.0
         self.poll_waiters: list[tuple[float, Callable[[bool], None]]] = []
+        # the last poll was the poll group's (poll_group.py): the owner need not wake for the
+        # next one unless the group misses it by GROUP_GRACE_S
+        self.group_polled = False
 
 
 class BusSupervisor:
@@ -196,7 +202,12 @@ class BusSupervisor:
         self._idle = False          # the owner waits on _cv (under _cv)
         self._events = 0            # _notify() calls: what other threads asked for (under _cv)
         self._closed = False        # _shutdown_drives ran: the drives stopped, the bus closed
+        # the poll group's thread has the bus and the lent drives (lend() to give_back(), under
+        # _cv): the owner waits meanwhile; _loan_waiter: it does (give_back wakes it)
+        self._lent = False
+        self._loan_waiter = False
         self.cycles = 0
+        self.passes = 0             # _work_once calls: the owner's wake-ups and units of work
 
     # ---------------------------------------------------------------------- other threads
     def start(self) -> None:
@@ -306,6 +317,55 @@ class BusSupervisor:
         elif not self._closed:   # never started (tests, a node that failed to start): do it here
             self._shutdown_drives(standstill_timeout_s, set(disable))
 
+    # ------------------------------------------------------------------ the poll group
+    def share_grid(self, t0: float) -> None:
+        """Poll on the grid of periods that starts at t0 (the poll group's buses share one)."""
+        self._grid_t0 = t0
+
+    def lend(self, now: float) -> list[tuple[Slot, list[Any]]]:
+        """(The poll group's thread) When the owner sleeps with nothing to do but polls: the
+        drives whose polls are due at `now`, with their state requests; the bus and these
+        drives are then the caller's until give_back() (the owner waits for it), and it may
+        call group_polled() and group_poll_failed(). [] (nothing lent) otherwise."""
+        with self._cv:
+            if not self._idle or self._lent or self._stopping or self._urgent \
+                    or self._shutdown_request is not None:
+                return []
+            out = []
+            for s in self._slot_list:
+                if s.queue or s.active is not None:
+                    return []                   # a job's turn: the owner is awake for it
+                if s.connected and not s.not_driven and s.poll_steps is None \
+                        and not s.poll_waiters and now >= s.next_poll_t:
+                    requests = s.drive.state_requests()
+                    if requests:
+                        out.append((s, requests))
+            self._lent = bool(out)
+            return out
+
+    def give_back(self, unpolled: Iterable[Slot] = ()) -> None:
+        """(The poll group's thread) The end of a loan. The owner polls the `unpolled` drives
+        itself, at once."""
+        with self._cv:
+            self._lent = False
+            unpolled = list(unpolled)
+            for s in unpolled:
+                s.group_polled = False
+            if unpolled or self._loan_waiter:
+                self._notify()
+
+    def group_polled(self, slot: Slot, state: DriveState, now: float) -> None:
+        """(The poll group's thread, lent) slot's poll gave `state` at `now`."""
+        self._jobs_since_poll = 0
+        slot.next_poll_t = self._next_grid_t(now)
+        slot.group_polled = True
+        self._polled(slot, state)
+
+    def group_poll_failed(self, slot: Slot, exc: Exception) -> None:
+        """(The poll group's thread, lent) slot's poll failed as read_state() would have."""
+        slot.group_polled = False
+        self._poll_failed(slot, exc)
+
     def _notify(self) -> None:
         """(Under _cv, from another thread) wake the owner: a job, a timer, a waiter or a
         request came. A pass of polls ends at it (`_poll_due`)."""
@@ -344,6 +404,10 @@ class BusSupervisor:
         try:
             while True:
                 with self._cv:
+                    while self._lent:              # the poll group has the bus: its poll ends
+                        self._loan_waiter = True   # within its reply wait (poll_group.py)
+                        self._cv.wait()
+                    self._loan_waiter = False
                     request = self._shutdown_request
                 if request is not None:
                     self._shutdown_drives(*request)
@@ -378,6 +442,7 @@ class BusSupervisor:
         next step of a running operation; the oldest waiting command; the next step of a poll;
         a due reconnect; the longest-due poll. One pass over the slots (it runs before every
         transaction: the CPU budget, docs/benchmarks.md)."""
+        self.passes += 1
         now = self.clock()
         if self._urgent:                   # (a deque's truth needs no lock; the pop does)
             with self._cv:
@@ -490,7 +555,9 @@ class BusSupervisor:
         times = [now + 0.5, self._next_event_t()]
         if not any(s.connected for s in self._slot_list):
             times.append(self._last_cycle_t + self._period_s())
-        times += [s.next_poll_t for s in self._slot_list
+        grace = max(GROUP_GRACE_S, 2.0 * self._period_s())
+        times += [s.next_poll_t + grace if s.group_polled else s.next_poll_t
+                  for s in self._slot_list
                   if s.connected and (s.active is None or s.active.polled)]
         return min(times)
 
@@ -653,19 +720,25 @@ class BusSupervisor:
         except StopIteration as stop:
             slot.poll_steps = None
             state = stop.value
-        except LinkError as exc:
+        except Exception as exc:  # noqa: BLE001 - _poll_failed sorts them
             slot.poll_steps = None
+            self._poll_failed(slot, exc)
+            return
+        slot.group_polled = False
+        self._polled(slot, state)
+
+    def _poll_failed(self, slot: Slot, exc: Exception) -> None:
+        if isinstance(exc, LinkError):
             self._drive_lost(slot, f'read state: {exc}')
-            return
-        except DriveError as exc:
-            slot.poll_steps = None
+        elif isinstance(exc, DriveError):
             self._note_error(slot, f'read state: {exc}')
-            return
-        except Exception as exc:  # noqa: BLE001 - unknown trouble: treat as a link loss
-            slot.poll_steps = None
-            self.on_event('error', slot.name, f'read_state: {exc!r}\n' + traceback.format_exc())
+        else:       # unknown trouble: treat as a link loss
+            self.on_event('error', slot.name, f'read_state: {exc!r}\n' + ''.join(
+                traceback.format_exception(exc)))
             self._drive_lost(slot, f'unexpected error {exc!r}')
-            return
+
+    def _polled(self, slot: Slot, state: DriveState) -> None:
+        """A poll's state: the slot's, its waiters', and the cycle's end when it was the last."""
         slot.state = state
         slot.drive.state_fresh_s = self._period_s()      # (the rate can change at run time)
         # when the position was true (the trajectory feedback compares the plan at that time)

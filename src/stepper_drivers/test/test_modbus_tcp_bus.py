@@ -268,3 +268,50 @@ def test_a_reply_that_does_not_fit_the_request_is_a_link_error():
     finally:
         b.close()
         srv.close()
+
+
+def test_a_reply_taken_later_comes_in_pieces_and_an_untaken_one_is_skipped():
+    """send_request() then take_reply(), which never blocks: None until the whole reply came
+    (here in two pieces); a request whose reply nobody took (the poll group gave up on it) is
+    an earlier transaction to the next one, and its late reply is skipped."""
+    from stepper_drivers.protocol.modbus import FC_READ_HOLDING_REGISTERS, read_request
+    rest = threading.Event()
+    with socket.create_server(('127.0.0.1', 0)) as listener:
+        port = listener.getsockname()[1]
+
+        def serve():
+            peer, _ = listener.accept()
+            with peer:
+                requests = peer.makefile('rb')
+
+                def request():                    # an FC03 request is 12 bytes
+                    return requests.read(12)
+                reply = _fc03_reply(request(), 111)
+                peer.sendall(reply[:5])
+                rest.wait(5)
+                peer.sendall(reply[5:])
+                untaken = request()               # no answer now ...
+                peer.sendall(_fc03_reply(untaken, 222) + _fc03_reply(request(), 333))
+                requests.read(1)
+        server = threading.Thread(target=serve, daemon=True)
+        server.start()
+        b = ModbusTcpBus('127.0.0.1', port, timeout_s=0.5)
+        b.open()
+        try:
+            request = read_request(1, FC_READ_HOLDING_REGISTERS, 1001, 1)
+            b.send_request(request)
+            deadline = time.monotonic() + 0.2
+            while time.monotonic() < deadline:     # the first piece, never the whole reply
+                assert b.take_reply(request) is None
+            rest.set()
+            deadline = time.monotonic() + 2.0
+            while (words := b.take_reply(request)) is None:
+                assert time.monotonic() < deadline, 'the rest of the reply did not come'
+            assert words == [111]
+            b.send_request(request)                # ... and never taken
+            assert b.read_holding_registers(1, 1001, 1) == [333]
+            assert b.counters() == {'transactions': 3, 'errors': 0, 'exceptions': 0,
+                                    'timeouts': 0, 'stale_replies': 1}
+        finally:
+            b.close()
+            server.join(2)

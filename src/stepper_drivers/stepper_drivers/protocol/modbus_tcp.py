@@ -43,6 +43,8 @@ class ModbusTcpBus(ModbusBus):
     time (the lock): the transaction id of each reply is checked, and a late reply to an earlier
     request that timed out is skipped (counted as `stale_replies`)."""
 
+    nonblocking_polls = True
+
     def __init__(self, host: str = '127.0.0.1', port: int = 502, timeout_s: float = 0.5):
         self.host = host
         self.port = int(port)
@@ -102,17 +104,10 @@ class ModbusTcpBus(ModbusBus):
     # Transactions -------------------------------------------------------------------------------
     def transact(self, request: Request) -> list[int]:
         with self._lock:
-            sock = self._sock
-            if sock is None:
-                self.errors += 1
-                raise drive.LinkError(f'{self.description}: not connected '
-                                      f'({request.describe()})')
-            self.transactions += 1
-            self._tid = (self._tid + 1) & 0xFFFF
-            pdu = request.pdu()
+            sock = self._connected(request)
             reply = b''
             try:
-                sock.sendall(MBAP.pack(self._tid, 0, len(pdu) + 1, request.unit & 0xFF) + pdu)
+                self._send(sock, request)
                 reply = self._reply(sock, request)
                 return parse_reply_pdu(reply, request)
             except ModbusExceptionError as exc:
@@ -136,6 +131,21 @@ class ModbusTcpBus(ModbusBus):
                 self.errors += 1
                 raise drive.LinkError(f'{self._what(request)}: {exc.strerror or exc!r}') from None
 
+    def _connected(self, request: Request) -> socket.socket:
+        """(Under _lock) The socket, or LinkError while closed."""
+        sock = self._sock
+        if sock is None:
+            self.errors += 1
+            raise drive.LinkError(f'{self.description}: not connected ({request.describe()})')
+        return sock
+
+    def _send(self, sock: socket.socket, request: Request) -> None:
+        """(Under _lock) The request on the wire, with the next transaction id."""
+        self.transactions += 1
+        self._tid = (self._tid + 1) & 0xFFFF
+        pdu = request.pdu()
+        sock.sendall(MBAP.pack(self._tid, 0, len(pdu) + 1, request.unit & 0xFF) + pdu)
+
     def _what(self, request: Request) -> str:
         return f'{self.host}:{self.port} unit {request.unit}: {request.describe()}'
 
@@ -153,23 +163,9 @@ class ModbusTcpBus(ModbusBus):
             self._rx += chunk
         deadline = time.monotonic() + self.timeout_s
         while True:
-            if len(self._rx) >= MBAP.size:
-                tid, protocol, length, unit = MBAP.unpack_from(self._rx)
-                if protocol != 0 or not 2 <= length <= MAX_ADU_BYTES - 6:
-                    got = bytes(self._rx[:MAX_ADU_BYTES]).hex(' ')
-                    self._rx.clear()          # the framing is lost: nothing after it is sure
-                    raise ReplyMismatch(f'not a Modbus TCP header (protocol id {protocol}, '
-                                        f'length {length}): received {got}')
-                end = MBAP.size - 1 + length
-                if len(self._rx) >= end:
-                    pdu = bytes(self._rx[MBAP.size:end])
-                    del self._rx[:end]
-                    if tid != self._tid:      # late answer to a request that timed out
-                        self.stale_replies += 1
-                        continue
-                    if unit != request.unit & 0xFF:
-                        raise ReplyMismatch(f'reply from unit {unit} (PDU {pdu.hex(" ")})')
-                    return pdu
+            pdu = self._frame(request)
+            if pdu is not None:
+                return pdu
             remaining = deadline - time.monotonic()
             if remaining <= 0:
                 raise TimeoutError
@@ -181,6 +177,76 @@ class ModbusTcpBus(ModbusBus):
             if not chunk:
                 raise _Closed
             self._rx += chunk
+
+    def _frame(self, request: Request) -> bytes | None:
+        """The PDU of the reply to transaction self._tid from what was received (self._rx),
+        or None while it is incomplete; late replies to earlier requests are skipped."""
+        while len(self._rx) >= MBAP.size:
+            tid, protocol, length, unit = MBAP.unpack_from(self._rx)
+            if protocol != 0 or not 2 <= length <= MAX_ADU_BYTES - 6:
+                got = bytes(self._rx[:MAX_ADU_BYTES]).hex(' ')
+                self._rx.clear()          # the framing is lost: nothing after it is sure
+                raise ReplyMismatch(f'not a Modbus TCP header (protocol id {protocol}, '
+                                    f'length {length}): received {got}')
+            end = MBAP.size - 1 + length
+            if len(self._rx) < end:
+                return None
+            pdu = bytes(self._rx[MBAP.size:end])
+            del self._rx[:end]
+            if tid != self._tid:      # late answer to a request that timed out
+                self.stale_replies += 1
+                continue
+            if unit != request.unit & 0xFF:
+                raise ReplyMismatch(f'reply from unit {unit} (PDU {pdu.hex(" ")})')
+            return pdu
+        return None
+
+    # Requests whose replies are taken later (poll_group.PollGroup) ------------------------------
+    def fileno(self) -> int:
+        """The socket's file descriptor (-1 while closed), to wait for a reply with select."""
+        sock = self._sock
+        return sock.fileno() if sock is not None else -1
+
+    def send_request(self, request: Request) -> None:
+        """Send `request` and return at once; take_reply() then gives its reply. A request
+        whose reply is never taken is an earlier transaction to the next one: its late reply
+        is skipped (stale_replies)."""
+        with self._lock:
+            sock = self._connected(request)
+            try:
+                self._send(sock, request)
+            except OSError as exc:
+                self.errors += 1
+                raise drive.LinkError(f'{self._what(request)}: {exc.strerror or exc!r}') from None
+
+    def take_reply(self, request: Request) -> list[int] | None:
+        """The reply to the request of the last send_request(), without blocking: None while
+        it has not all come. Raises as transact() does."""
+        with self._lock:
+            sock = self._connected(request)
+            try:
+                chunk = sock.recv(MAX_ADU_BYTES, socket.MSG_DONTWAIT)
+            except BlockingIOError:
+                chunk = None
+            except OSError as exc:
+                self.errors += 1
+                raise drive.LinkError(f'{self._what(request)}: {exc.strerror or exc!r}') from None
+            if chunk is not None:
+                if not chunk:
+                    self.errors += 1
+                    raise drive.LinkError(f'{self._what(request)}: connection closed by the '
+                                          'server')
+                self._rx += chunk
+            try:
+                pdu = self._frame(request)
+                return None if pdu is None else parse_reply_pdu(pdu, request)
+            except ModbusExceptionError as exc:
+                self.errors += 1
+                self.exceptions += 1
+                raise exc.within(self._what(request)) from None
+            except ReplyMismatch as exc:
+                self.errors += 1
+                raise drive.LinkError(f'{self._what(request)}: {exc}') from None
 
 
 def _set_timeouts(sock: socket.socket, seconds: float) -> None:

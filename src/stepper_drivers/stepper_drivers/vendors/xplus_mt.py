@@ -28,7 +28,8 @@ from ..cia402_drive import Cia402Drive
 from ..cia402_modes import HomingMode, Mode, ProfilePositionMode, ProfileVelocityMode
 from ..drive import (Bus, DriveError, DriveState, Homing, HomingState, IdentityError, Motion,
                      ParamSpec, State, Steps, Vendor, register_type)
-from ..protocol.modbus import RawRegisterRules, parse_raw_register
+from ..protocol.modbus import (FC_READ_HOLDING_REGISTERS, RawRegisterRules, Request,
+                               parse_raw_register, read_request)
 from ..protocol.modbus_tcp import ModbusExceptionError, ModbusTcpBus, make_bus as make_tcp_bus
 from . import xplus_mt_map as xm, xplus_mt_scan
 
@@ -94,6 +95,7 @@ class XplusMtDrive(Cia402Drive):
         self.watchdog_ms = int(params['watchdog_ms'])
         self.input_config = int(params['input_config'])
         self._split_reads = False
+        self._state_requests: tuple[bool | None, list[Request]] = (None, [])
         self._homed = False
         self._current_on_at: float | None = None
         self._settle_s = SETTLE_MIN_S
@@ -250,16 +252,38 @@ class XplusMtDrive(Cia402Drive):
                 logger.info('%s: block read 1001..1021 refused (%s); using 3 reads', self.name,
                             exc)
                 self._split_reads = True
+        return self._joined([self._read_words(address, n) for address, n in SPLIT_READS])
+
+    @staticmethod
+    def _joined(parts: list[list[int]]) -> list[int]:
+        """Words 1001..1021 from the replies of the SPLIT_READS, 0 in the holes."""
+        start, count = STATE_BLOCK
         out = [0] * count
-        for address, n in SPLIT_READS:
-            out[address - start:address - start + n] = self._read_words(address, n)
+        for (address, n), words in zip(SPLIT_READS, parts):
+            out[address - start:address - start + n] = words
         return out
 
     def read_state(self) -> DriveState:
+        return self._state_from_words(self._read_state_words())
+
+    def state_requests(self) -> list[Request]:
+        """read_state()'s FC03 requests (§13): 1001..1021, or the three SPLIT_READS once the
+        drive refused a read over the holes."""
+        key = self._split_reads
+        if self._state_requests[0] != key:
+            reads = SPLIT_READS if key else (STATE_BLOCK,)
+            self._state_requests = (key, [read_request(
+                self.unit_id, FC_READ_HOLDING_REGISTERS, address, n) for address, n in reads])
+        return self._state_requests[1]
+
+    def state_from_replies(self, replies: list[list[int]]) -> DriveState:
+        return self._state_from_words(replies[0] if len(replies) == 1 else
+                                      self._joined(replies))
+
+    def _state_from_words(self, w: list[int]) -> DriveState:
         """The state from words 1001..1021. The last snapshot again while nothing it is made of
         changed (the words, the position before them, the homed and enabled flags): an idle
         drive's poll is one transaction and one comparison, not a decode."""
-        w = self._read_state_words()
         key = (w, self._last_position, self._homed, self._was_enabled)
         if key == self._snapshot[0]:
             return self._snapshot[1]

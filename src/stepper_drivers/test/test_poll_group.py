@@ -1,0 +1,186 @@
+"""PollGroup: one thread polls the idle links of several bus owners (X-PLUS MT hosts).
+
+Real parts: an X-PLUS MT simulator per host (pymodbus servers, in-process), the project's
+ModbusTcpBus and XplusMtDrive, a BusSupervisor per link. Bounds come from the poll period and
+the bus timeout under test.
+"""
+
+import threading
+import time
+
+import pytest
+
+from stepper_drivers.commands import Command
+from stepper_drivers.poll_group import REPLY_WAIT_PERIODS, PollGroup
+from stepper_drivers.supervisor import GROUP_GRACE_S, BusSupervisor
+from stepper_drivers.vendors.xplus_mt import VENDOR
+from stepper_sim.harness import wait_for
+from stepper_sim.xplus_mt_sim import XplusMtDriveConfig, XplusMtSim
+
+RATE_HZ = 50.0
+PERIOD_S = 1.0 / RATE_HZ
+TIMEOUT_S = 0.3            # the buses' timeout_s
+COMMAND_TIMEOUT_S = 0.3    # the velocity watchdog
+
+
+class Links:
+    """`n` X-PLUS MT hosts with one drive each, a bus owner per host, and a poll group."""
+
+    def __init__(self, tmp_path, n=3, strict=()):
+        self.sims, self.sups, self.cycles = [], [], []     # cycles: (thread name, bus, t)
+        self.settings = {'publish_rate_hz': RATE_HZ, 'command_timeout_s': COMMAND_TIMEOUT_S,
+                         'reconnect_period_s': 0.5}
+        for k in range(n):
+            sim = XplusMtSim(port=0, drives=[XplusMtDriveConfig(f'axis{k + 1}', unit_id=1)],
+                             storage_dir=str(tmp_path / f'host{k}'), strict=k in strict)
+            sim.start()
+            self.sims.append(sim)
+            bus = VENDOR.make_bus({'host': '127.0.0.1', 'port': sim.port,
+                                   'timeout_s': TIMEOUT_S})
+            drive = VENDOR.make_drive(bus, f'axis{k + 1}', {
+                'unit_id': 1, 'word_order': 'little', 'steps_per_rev': 12800,
+                'joint_name': f'joint{k + 1}'})
+            self.sups.append(BusSupervisor(bus, {f'axis{k + 1}': drive}, self.settings,
+                                           on_cycle=self._on_cycle, name=bus.description))
+        self.group = PollGroup(self.sups)
+        for sup in self.sups:
+            sup.start()
+        wait_for(lambda: all(s.connected for sup in self.sups for s in sup.slots.values()),
+                 10.0, 'every drive connected')
+        self.group.start()
+
+    def _on_cycle(self, sup):
+        self.cycles.append((threading.current_thread().name, sup.name, time.monotonic()))
+
+    def slot(self, k):
+        return self.sups[k].slots[f'axis{k + 1}']
+
+    def polls_times(self, k, t0, t1):
+        return [t for _, name, t in self.cycles if name == self.sups[k].name and t0 <= t <= t1]
+
+    def close(self):
+        for sup in self.sups:
+            sup.shutdown(1.0)
+        self.group.stop()
+        for sim in self.sims:
+            sim.stop()
+
+
+@pytest.fixture
+def links(tmp_path):
+    lk = Links(tmp_path)
+    yield lk
+    lk.close()
+
+
+def settle(links):
+    """Past the start: the group polls every link, and every owner went to sleep after that
+    (an owner asleep since before wakes once at its old poll time)."""
+    wait_for(lambda: all(s.group_polled for sup in links.sups for s in sup.slots.values()),
+             2.0, 'every link polled by the group')
+    time.sleep(2 * PERIOD_S)
+
+
+def test_one_thread_polls_every_link_at_the_rate_while_the_owners_sleep(links):
+    settle(links)
+    passes0 = [sup.passes for sup in links.sups]
+    polls0 = [links.slot(k).polls for k in range(3)]
+    t0 = time.monotonic()
+    time.sleep(1.0)
+    elapsed = time.monotonic() - t0
+    for k, sup in enumerate(links.sups):
+        polls = links.slot(k).polls - polls0[k]
+        assert polls >= 0.8 * elapsed * RATE_HZ, f'{sup.name}: {polls} polls in {elapsed:.2f} s'
+        threads = [name for name, bus, t in links.cycles if bus == sup.name and t >= t0]
+        own = len(threads) - threads.count('poll group')
+        # the owner polls only what the group gave back (a reply later than the group's wait)
+        assert own <= 0.1 * polls, f'{sup.name}: {own} of {polls} polls by the owner'
+        woke = sup.passes - passes0[k]
+        # ... and wakes otherwise only for a poll late by the grace: the group polled it
+        assert woke <= elapsed / GROUP_GRACE_S + 2 + 2 * own, \
+            f'{sup.name}: the owner woke {woke} times, polled {own} times'
+
+
+def test_a_host_that_stops_answering_stalls_only_its_own_drive(links):
+    settle(links)
+    links.sims[0].inject_fault('axis1', 'no_reply')
+    t0 = time.monotonic()
+    wait_for(lambda: not links.slot(0).connected,
+             REPLY_WAIT_PERIODS * PERIOD_S + TIMEOUT_S + 2 * PERIOD_S + 0.5,
+             "the silent host's drive DISCONNECTED")
+    lost_after = time.monotonic() - t0
+    # the group gives the silent link back after its reply wait; its owner's own poll then
+    # times out: the drive is lost after about both, not at the group's next tries
+    assert lost_after <= REPLY_WAIT_PERIODS * PERIOD_S + TIMEOUT_S + 2 * PERIOD_S + 0.1
+    time.sleep(0.2)
+    t1 = time.monotonic()
+    for k in (1, 2):
+        times = links.polls_times(k, t0, t1)
+        gaps = [b - a for a, b in zip(times, times[1:])]
+        assert len(times) >= 0.8 * (t1 - t0) * RATE_HZ, f'axis{k + 1}: {len(times)} polls'
+        # a tick's reply wait for the silent host does not hold the others' polls
+        assert max(gaps) <= 2 * PERIOD_S + REPLY_WAIT_PERIODS * PERIOD_S, \
+            f'axis{k + 1}: a gap of {max(gaps) * 1000:.0f} ms between polls'
+        assert links.slot(k).connected
+
+
+def test_a_command_for_a_lent_link_waits_for_the_groups_poll_and_is_not_lost(links):
+    settle(links)
+    delay_s = REPLY_WAIT_PERIODS * PERIOD_S / 2            # answered within the group's wait
+    links.sims[1].inject_fault('axis2', 'late_reply', value=delay_s)
+    sup = links.sups[1]
+    seen = []
+    for _ in range(5):
+        wait_for(lambda: sup._lent, 2.0, 'the group holds the link')
+        t0 = time.monotonic()
+        fut = sup.submit('axis2', Command.maintenance(
+            lambda: seen.append((sup._lent, time.monotonic())), 'mark'))
+        fut.result(timeout=2.0)
+        lent, t = seen[-1]
+        assert not lent, 'the command ran while the group had the link'
+        # the group's poll ends with its reply or its reply wait, then the command
+        assert t - t0 <= REPLY_WAIT_PERIODS * PERIOD_S + PERIOD_S, \
+            f'the command waited {(t - t0) * 1000:.0f} ms'
+
+
+def test_the_velocity_watchdog_fires_on_its_own_clock_while_the_group_polls(links):
+    settle(links)
+    sup = links.sups[2]
+    sup.submit('axis3', Command.enable(sup.slots['axis3'].drive.enable)).result(timeout=5.0)
+    settle(links)
+    t0 = time.monotonic()
+    sup.arm_watchdog('axis3')
+    wait_for(lambda: not sup.watchdog_armed('axis3'), COMMAND_TIMEOUT_S + 2.0,
+             'the watchdog stop')
+    took = time.monotonic() - t0
+    # its deadline, then the stop's transactions (and at most one poll in flight)
+    assert COMMAND_TIMEOUT_S <= took <= COMMAND_TIMEOUT_S + 2 * PERIOD_S, f'{took:.3f} s'
+
+
+def test_a_drive_that_refuses_the_block_read_is_polled_in_three_reads(tmp_path):
+    """A strict drive refuses the block read over its register holes (exception 02): its
+    owner's poll finds out and reads the state in three requests from then on; so does the
+    group, without an error."""
+    lk = Links(tmp_path, strict=(0,))
+    try:
+        settle(lk)
+        slot, bus = lk.slot(0), lk.sups[0].bus
+        polls0, transactions0, t0 = slot.polls, bus.transactions, time.monotonic()
+        time.sleep(0.5)
+        polls, transactions = slot.polls - polls0, bus.transactions - transactions0
+        assert polls >= 0.8 * (time.monotonic() - t0) * RATE_HZ
+        assert transactions == 3 * polls
+        assert slot.group_polled and slot.connected and slot.last_error == ''
+        assert bus.errors == 1          # the one refused block read
+    finally:
+        lk.close()
+
+
+def test_shutdown_during_the_groups_polls_stops_every_drive_and_ends_the_group(links):
+    settle(links)
+    links.sims[0].inject_fault('axis1', 'late_reply', value=REPLY_WAIT_PERIODS * PERIOD_S / 2)
+    wait_for(lambda: links.sups[0]._lent, 2.0, 'the group holds the first link')
+    for sup in links.sups:
+        sup.shutdown(1.0)
+    assert all(not sup.alive for sup in links.sups)
+    wait_for(lambda: not links.group.alive, 2 * PERIOD_S + 1.0, 'the group ended')
