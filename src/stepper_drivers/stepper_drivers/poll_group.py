@@ -23,8 +23,9 @@ Threads and what they own:
 - A link error is handled as the owner's poll would (the drive lost, reconnect: the owner's
   job). Any other error gives the link back unpolled: the owner's read_state() then decides
   (a Modbus exception reply: the drive's own fallback).
-- An exception that escapes (a bug) ends this thread after it gave every link back: the owners
-  poll their drives themselves again (their drives are never left unpolled).
+- When this thread ends (stop(), every owner stopped, or a bug: an exception that escapes), it
+  gives every link back with its drives unpolled: the owners poll them themselves from then on,
+  at once (a drive-side watchdog of a few poll periods does not notice).
 
 The owners wake for a poll only once it is late by GROUP_GRACE_S (supervisor.py); a link polled
 by its owner (a job ran at the grid point) is lent again at a later period.
@@ -158,6 +159,9 @@ class PollGroup:
             self.failure = f'{self.name} failed: {exc!r}'
             self.on_event('error', self.name, f'{self.failure}; the bus owners poll their '
                           'drives themselves\n' + traceback.format_exc())
+        finally:        # (nothing is lent here) the owners poll their drives from now on
+            for sup in self.sups:
+                sup.give_back(sup.slots.values())
 
     def _tick(self, now: float, period: float) -> None:
         loans = []

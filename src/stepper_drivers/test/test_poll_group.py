@@ -94,7 +94,7 @@ def test_one_thread_polls_every_link_at_the_rate_while_the_owners_sleep(links):
         threads = [name for name, bus, t in links.cycles if bus == sup.name and t >= t0]
         own = len(threads) - threads.count('poll group')
         # the owner polls only what the group gave back (a reply later than the group's wait)
-        assert own <= 0.1 * polls, f'{sup.name}: {own} of {polls} polls by the owner'
+        assert own <= 0.25 * polls, f'{sup.name}: {own} of {polls} polls by the owner'
         woke = sup.passes - passes0[k]
         # ... and wakes otherwise only for a poll late by the grace: the group polled it
         assert woke <= elapsed / GROUP_GRACE_S + 2 + 2 * own, \
@@ -118,8 +118,9 @@ def test_a_host_that_stops_answering_stalls_only_its_own_drive(links):
         times = links.polls_times(k, t0, t1)
         gaps = [b - a for a, b in zip(times, times[1:])]
         assert len(times) >= 0.8 * (t1 - t0) * RATE_HZ, f'axis{k + 1}: {len(times)} polls'
-        # a tick's reply wait for the silent host does not hold the others' polls
-        assert max(gaps) <= 2 * PERIOD_S + REPLY_WAIT_PERIODS * PERIOD_S, \
+        # the silent host's timeout never shows in the others' polls (a tick waits for it at
+        # most its reply wait)
+        assert max(gaps) < TIMEOUT_S / 2, \
             f'axis{k + 1}: a gap of {max(gaps) * 1000:.0f} ms between polls'
         assert links.slot(k).connected
 
@@ -138,8 +139,9 @@ def test_a_command_for_a_lent_link_waits_for_the_groups_poll_and_is_not_lost(lin
         fut.result(timeout=2.0)
         lent, t = seen[-1]
         assert not lent, 'the command ran while the group had the link'
-        # the group's poll ends with its reply or its reply wait, then the command
-        assert t - t0 <= REPLY_WAIT_PERIODS * PERIOD_S + PERIOD_S, \
+        # the group's poll ends with its reply or its reply wait (not the bus timeout), then
+        # the command
+        assert t - t0 < TIMEOUT_S / 2, \
             f'the command waited {(t - t0) * 1000:.0f} ms'
 
 
@@ -153,8 +155,9 @@ def test_the_velocity_watchdog_fires_on_its_own_clock_while_the_group_polls(link
     wait_for(lambda: not sup.watchdog_armed('axis3'), COMMAND_TIMEOUT_S + 2.0,
              'the watchdog stop')
     took = time.monotonic() - t0
-    # its deadline, then the stop's transactions (and at most one poll in flight)
-    assert COMMAND_TIMEOUT_S <= took <= COMMAND_TIMEOUT_S + 2 * PERIOD_S, f'{took:.3f} s'
+    # its deadline, then the stop's transactions (and at most one poll in flight), not at the
+    # owner's next wake for a poll the group missed (GROUP_GRACE_S)
+    assert COMMAND_TIMEOUT_S <= took < COMMAND_TIMEOUT_S + GROUP_GRACE_S / 2, f'{took:.3f} s'
 
 
 def test_a_drive_that_refuses_the_block_read_is_polled_in_three_reads(tmp_path):
@@ -184,3 +187,21 @@ def test_shutdown_during_the_groups_polls_stops_every_drive_and_ends_the_group(l
         sup.shutdown(1.0)
     assert all(not sup.alive for sup in links.sups)
     wait_for(lambda: not links.group.alive, 2 * PERIOD_S + 1.0, 'the group ended')
+
+
+def test_when_the_group_ends_the_owners_poll_their_drives_at_once(links):
+    settle(links)
+    t0 = time.monotonic()
+    links.group.stop()
+    assert not links.group.alive
+    stopped = time.monotonic()
+    time.sleep(0.3)
+    t1 = time.monotonic()
+    for k, sup in enumerate(links.sups):
+        times = links.polls_times(k, t0 - PERIOD_S, t1)
+        gaps = [b - a for a, b in zip(times, times[1:])]
+        # not after GROUP_GRACE_S, when an owner would find its drive's poll late
+        assert max(gaps) < GROUP_GRACE_S / 2, f'{sup.name}: a gap of {max(gaps):.3f} s'
+        assert not links.slot(k).group_polled
+        threads = {name for name, bus, t in links.cycles if bus == sup.name and t > stopped}
+        assert threads == {f'owner {sup.name}'}
