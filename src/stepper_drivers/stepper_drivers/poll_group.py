@@ -18,8 +18,9 @@ Threads and what they own:
   state_from_replies(), the bus only through send_request(), take_reply() and fileno().
 - A link whose replies are not complete within REPLY_WAIT_PERIODS of a period (at most the
   bus's timeout_s) is given back unpolled: its owner polls it again at once, with its own
-  timeout, and the late reply is skipped as stale. A host that stops answering costs the other
-  links nothing.
+  timeout, after the late reply (one request in flight on a link: ModbusTcpBus), and the link
+  is not lent again before that poll. A host that stops answering costs the other links
+  nothing.
 - A link error is handled as the owner's poll would (the drive lost, reconnect: the owner's
   job). Any other error gives the link back unpolled: the owner's read_state() then decides
   (a Modbus exception reply: the drive's own fallback).

@@ -158,6 +158,9 @@ class Slot:
         # the last poll was the poll group's (poll_group.py): the owner need not wake for the
         # next one unless the group misses it by GROUP_GRACE_S
         self.group_polled = False
+        # the group gave this drive back unpolled: the owner polls it before the group lends the
+        # link again (a request of the group's may still await its reply: ModbusTcpBus)
+        self.owner_polls = False
 
 
 class BusSupervisor:
@@ -333,8 +336,8 @@ class BusSupervisor:
                 return []
             out = []
             for s in self._slot_list:
-                if s.queue or s.active is not None:
-                    return []                   # a job's turn: the owner is awake for it
+                if s.queue or s.active is not None or s.owner_polls:
+                    return []                   # the owner's turn: it is awake for it
                 if s.connected and not s.not_driven and s.poll_steps is None \
                         and not s.poll_waiters and now >= s.next_poll_t:
                     requests = s.drive.state_requests()
@@ -351,6 +354,7 @@ class BusSupervisor:
             unpolled = list(unpolled)
             for s in unpolled:
                 s.group_polled = False
+                s.owner_polls = True
             if unpolled or self._loan_waiter:
                 self._notify()
 
@@ -702,6 +706,7 @@ class BusSupervisor:
     # ----------------------------------------------------------------------------- polls
     def _poll_step(self, slot: Slot, now: float) -> None:
         self._jobs_since_poll = 0
+        slot.owner_polls = False
         try:
             if slot.poll_steps is None:
                 result = slot.drive.read_state()

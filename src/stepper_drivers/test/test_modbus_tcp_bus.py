@@ -270,29 +270,33 @@ def test_a_reply_that_does_not_fit_the_request_is_a_link_error():
         srv.close()
 
 
-def test_a_reply_taken_later_comes_in_pieces_and_an_untaken_one_is_skipped():
+def test_a_reply_taken_later_comes_in_pieces_and_the_next_request_waits_for_an_untaken_one():
     """send_request() then take_reply(), which never blocks: None until the whole reply came
-    (here in two pieces); a request whose reply nobody took (the poll group gave up on it) is
-    an earlier transaction to the next one, and its late reply is skipped."""
+    (here in two pieces). A request whose reply nobody took (the poll group gave the link back
+    before it came): the next request goes out only after its reply, which is dropped; never
+    two requests in flight (pymodbus answers only the first of two that arrive together)."""
+    import select
     from stepper_drivers.protocol.modbus import FC_READ_HOLDING_REGISTERS, read_request
     rest = threading.Event()
+    pipelined = []
     with socket.create_server(('127.0.0.1', 0)) as listener:
         port = listener.getsockname()[1]
 
         def serve():
             peer, _ = listener.accept()
             with peer:
-                requests = peer.makefile('rb')
-
-                def request():                    # an FC03 request is 12 bytes
-                    return requests.read(12)
+                def request():                    # an FC03 request is 12 bytes; no more read
+                    return peer.recv(12, socket.MSG_WAITALL)
                 reply = _fc03_reply(request(), 111)
                 peer.sendall(reply[:5])
                 rest.wait(5)
                 peer.sendall(reply[5:])
-                untaken = request()               # no answer now ...
-                peer.sendall(_fc03_reply(untaken, 222) + _fc03_reply(request(), 333))
-                requests.read(1)
+                untaken = request()
+                time.sleep(0.1)                   # a slow answer, while the bus waits for it
+                pipelined.append(bool(select.select([peer], [], [], 0)[0]))
+                peer.sendall(_fc03_reply(untaken, 222))
+                peer.sendall(_fc03_reply(request(), 333))
+                peer.recv(1)
         server = threading.Thread(target=serve, daemon=True)
         server.start()
         b = ModbusTcpBus('127.0.0.1', port, timeout_s=0.5)
@@ -308,10 +312,33 @@ def test_a_reply_taken_later_comes_in_pieces_and_an_untaken_one_is_skipped():
             while (words := b.take_reply(request)) is None:
                 assert time.monotonic() < deadline, 'the rest of the reply did not come'
             assert words == [111]
-            b.send_request(request)                # ... and never taken
+            b.send_request(request)                # never taken
             assert b.read_holding_registers(1, 1001, 1) == [333]
+            assert pipelined == [False], 'the next request went out before the reply'
             assert b.counters() == {'transactions': 3, 'errors': 0, 'exceptions': 0,
                                     'timeouts': 0, 'stale_replies': 1}
         finally:
             b.close()
             server.join(2)
+
+
+def test_an_untaken_request_without_a_reply_is_a_link_error_naming_it():
+    """The next request waits for it at most timeout_s from its sending, then the link is
+    lost, naming the request that got no answer."""
+    from stepper_drivers.protocol.modbus import FC_READ_HOLDING_REGISTERS, read_request
+    with socket.socket() as silent:
+        silent.bind(('127.0.0.1', 0))
+        silent.listen()
+        port = silent.getsockname()[1]
+        b = ModbusTcpBus('127.0.0.1', port, timeout_s=0.1)
+        b.open()
+        try:
+            b.send_request(read_request(1, FC_READ_HOLDING_REGISTERS, 1001, 21))
+            t0 = time.monotonic()
+            with pytest.raises(LinkError, match=rf'127.0.0.1:{port} unit 1: FC03 read 21 at '
+                                                r'1001: no answer within 0.1 s'):
+                b.read_holding_registers(1, 1040, 1)
+            assert time.monotonic() - t0 < 2 * 0.1      # not its timeout and then our own
+            assert b.counters()['timeouts'] == 1 and b.transactions == 1
+        finally:
+            b.close()

@@ -205,3 +205,22 @@ def test_when_the_group_ends_the_owners_poll_their_drives_at_once(links):
         assert not links.slot(k).group_polled
         threads = {name for name, bus, t in links.cycles if bus == sup.name and t > stopped}
         assert threads == {f'owner {sup.name}'}
+
+
+def test_a_host_that_answers_after_the_groups_wait_is_polled_by_its_owner_and_kept(links):
+    """Replies later than the group's wait, for a second: the owner polls the drive each
+    time, after the reply to the group's request (one request in flight: the simulator's
+    pymodbus server, like many devices, answers only the first of two that arrive together);
+    the drive is never lost."""
+    settle(links)
+    slot, bus = links.slot(1), links.sups[1].bus
+    reconnects, timeouts = slot.reconnects, bus.timeouts
+    links.sims[1].inject_fault('axis2', 'late_reply', value=1.5 * REPLY_WAIT_PERIODS * PERIOD_S)
+    polls0, t0 = slot.polls, time.monotonic()
+    time.sleep(1.0)
+    polls = slot.polls - polls0
+    assert slot.connected and slot.reconnects == reconnects and bus.timeouts == timeouts
+    # a poll: the group's wait, the rest of its request's late reply, the owner's own (1.5
+    # periods): every other grid point
+    assert polls >= 0.8 * (time.monotonic() - t0) / (2 * PERIOD_S)
+    assert not slot.group_polled and bus.stale_replies > 0

@@ -59,6 +59,8 @@ class ModbusTcpBus(ModbusBus):
         self._sock: socket.socket | None = None
         self._rx = bytearray()
         self._tid = 0
+        # (request, deadline) of the last send_request() while its reply was not taken
+        self._pending: tuple[Request, float] | None = None
 
     # Life cycle ---------------------------------------------------------------------------------
     def open(self) -> None:
@@ -80,12 +82,14 @@ class ModbusTcpBus(ModbusBus):
             _set_timeouts(sock, self.timeout_s)
             self._sock = sock
             self._rx.clear()
+            self._pending = None
             logger.info('connected to %s', self.description)
 
     def close(self) -> None:
         with self._lock:
             sock, self._sock = self._sock, None
             self._rx.clear()
+            self._pending = None
             if sock is not None:
                 try:
                     sock.close()
@@ -105,6 +109,8 @@ class ModbusTcpBus(ModbusBus):
     def transact(self, request: Request) -> list[int]:
         with self._lock:
             sock = self._connected(request)
+            if self._pending is not None:
+                self._finish_pending(sock)
             reply = b''
             try:
                 self._send(sock, request)
@@ -114,22 +120,24 @@ class ModbusTcpBus(ModbusBus):
                 self.errors += 1
                 self.exceptions += 1
                 raise exc.within(self._what(request)) from None
-            except TimeoutError:
-                self.errors += 1
-                self.timeouts += 1
-                raise drive.LinkError(f'{self._what(request)}: no answer within '
-                                      f'{self.timeout_s:g} s') from None
-            except _Closed:
-                self.errors += 1
-                raise drive.LinkError(f'{self._what(request)}: connection closed by the '
-                                      'server') from None
             except ReplyMismatch as exc:
-                self.errors += 1
                 got = f' (reply PDU {reply.hex(" ")})' if reply else ''
-                raise drive.LinkError(f'{self._what(request)}: {exc}{got}') from None
-            except OSError as exc:          # reset, broken pipe, ...
-                self.errors += 1
-                raise drive.LinkError(f'{self._what(request)}: {exc.strerror or exc!r}') from None
+                raise self._link_error(request, exc, got) from None
+            except (_Closed, OSError) as exc:        # a time-out, reset, broken pipe, ...
+                raise self._link_error(request, exc) from None
+
+    def _link_error(self, request: Request, exc: Exception, got: str = '') -> drive.LinkError:
+        """(Under _lock) The LinkError of `request`'s failed transaction, counted."""
+        self.errors += 1
+        what = self._what(request)
+        if isinstance(exc, TimeoutError):
+            self.timeouts += 1
+            return drive.LinkError(f'{what}: no answer within {self.timeout_s:g} s')
+        if isinstance(exc, _Closed):
+            return drive.LinkError(f'{what}: connection closed by the server')
+        if isinstance(exc, ReplyMismatch):
+            return drive.LinkError(f'{what}: {exc}{got}')
+        return drive.LinkError(f'{what}: {getattr(exc, "strerror", None) or exc!r}')
 
     def _connected(self, request: Request) -> socket.socket:
         """(Under _lock) The socket, or LinkError while closed."""
@@ -146,6 +154,20 @@ class ModbusTcpBus(ModbusBus):
         pdu = request.pdu()
         sock.sendall(MBAP.pack(self._tid, 0, len(pdu) + 1, request.unit & 0xFF) + pdu)
 
+    def _finish_pending(self, sock: socket.socket) -> None:
+        """(Under _lock) The reply to a send_request() nobody took (the poll group gave the link
+        back before it came), read and dropped (stale_replies) before the next request goes
+        out: one request in flight at a time, as a Modbus server expects (pymodbus answers only
+        the first of two requests that arrive together). None within timeout_s of its sending:
+        LinkError."""
+        request, deadline = self._pending
+        self._pending = None
+        try:
+            self._await_frame(sock, request, deadline)
+        except (_Closed, ReplyMismatch, OSError) as exc:
+            raise self._link_error(request, exc) from None
+        self.stale_replies += 1
+
     def _what(self, request: Request) -> str:
         return f'{self.host}:{self.port} unit {request.unit}: {request.describe()}'
 
@@ -161,7 +183,11 @@ class ModbusTcpBus(ModbusBus):
                         and protocol == 0 and unit == request.unit & 0xFF:
                     return chunk[MBAP.size:]
             self._rx += chunk
-        deadline = time.monotonic() + self.timeout_s
+        return self._await_frame(sock, request, time.monotonic() + self.timeout_s)
+
+    def _await_frame(self, sock: socket.socket, request: Request, deadline: float) -> bytes:
+        """The PDU of the reply to transaction self._tid, received by `deadline`
+        (time.monotonic()), else TimeoutError."""
         while True:
             pdu = self._frame(request)
             if pdu is not None:
@@ -208,16 +234,18 @@ class ModbusTcpBus(ModbusBus):
         return sock.fileno() if sock is not None else -1
 
     def send_request(self, request: Request) -> None:
-        """Send `request` and return at once; take_reply() then gives its reply. A request
-        whose reply is never taken is an earlier transaction to the next one: its late reply
-        is skipped (stale_replies)."""
+        """Send `request` and return at once; take_reply() then gives its reply. The next
+        request, whoever sends it, first waits for the reply of one whose reply was not taken
+        (bounded by timeout_s from its sending; _finish_pending)."""
         with self._lock:
             sock = self._connected(request)
+            if self._pending is not None:
+                self._finish_pending(sock)
             try:
                 self._send(sock, request)
             except OSError as exc:
-                self.errors += 1
-                raise drive.LinkError(f'{self._what(request)}: {exc.strerror or exc!r}') from None
+                raise self._link_error(request, exc) from None
+            self._pending = (request, time.monotonic() + self.timeout_s)
 
     def take_reply(self, request: Request) -> list[int] | None:
         """The reply to the request of the last send_request(), without blocking: None while
@@ -226,27 +254,27 @@ class ModbusTcpBus(ModbusBus):
             sock = self._connected(request)
             try:
                 chunk = sock.recv(MAX_ADU_BYTES, socket.MSG_DONTWAIT)
-            except BlockingIOError:
-                chunk = None
-            except OSError as exc:
-                self.errors += 1
-                raise drive.LinkError(f'{self._what(request)}: {exc.strerror or exc!r}') from None
-            if chunk is not None:
                 if not chunk:
-                    self.errors += 1
-                    raise drive.LinkError(f'{self._what(request)}: connection closed by the '
-                                          'server')
+                    raise _Closed
                 self._rx += chunk
+            except BlockingIOError:
+                pass
+            except (_Closed, OSError) as exc:
+                self._pending = None
+                raise self._link_error(request, exc) from None
             try:
                 pdu = self._frame(request)
-                return None if pdu is None else parse_reply_pdu(pdu, request)
+                if pdu is None:
+                    return None
+                self._pending = None
+                return parse_reply_pdu(pdu, request)
             except ModbusExceptionError as exc:
                 self.errors += 1
                 self.exceptions += 1
                 raise exc.within(self._what(request)) from None
             except ReplyMismatch as exc:
-                self.errors += 1
-                raise drive.LinkError(f'{self._what(request)}: {exc}') from None
+                self._pending = None
+                raise self._link_error(request, exc) from None
 
 
 def _set_timeouts(sock: socket.socket, seconds: float) -> None:
