@@ -46,8 +46,11 @@ from .supervisor import BusSupervisor, Slot
 
 logger = logging.getLogger(__name__)
 
-# A lent link's reply is waited for at most this part of a poll period (and the bus's timeout_s).
-REPLY_WAIT_PERIODS = 0.5
+# A lent link's reply is waited for at most this part of a poll period (and the bus's timeout_s):
+# less than a period, so the next tick starts on time; as much as that, since a link given back
+# unpolled costs its owner the rest of that reply and a poll of its own (8 hosts simulated in one
+# process answered later than half a period several times a second: docs/benchmarks.md).
+REPLY_WAIT_PERIODS = 0.8
 
 
 class _Loan:

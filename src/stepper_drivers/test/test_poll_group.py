@@ -5,6 +5,7 @@ ModbusTcpBus and XplusMtDrive, a BusSupervisor per link. Bounds come from the po
 the bus timeout under test.
 """
 
+import math
 import threading
 import time
 
@@ -215,12 +216,14 @@ def test_a_host_that_answers_after_the_groups_wait_is_polled_by_its_owner_and_ke
     settle(links)
     slot, bus = links.slot(1), links.sups[1].bus
     reconnects, timeouts = slot.reconnects, bus.timeouts
-    links.sims[1].inject_fault('axis2', 'late_reply', value=1.5 * REPLY_WAIT_PERIODS * PERIOD_S)
+    late_s = (REPLY_WAIT_PERIODS + 0.25) * PERIOD_S
+    links.sims[1].inject_fault('axis2', 'late_reply', value=late_s)
     polls0, t0 = slot.polls, time.monotonic()
     time.sleep(1.0)
     polls = slot.polls - polls0
     assert slot.connected and slot.reconnects == reconnects and bus.timeouts == timeouts
-    # a poll: the group's wait, the rest of its request's late reply, the owner's own (1.5
-    # periods): every other grid point
-    assert polls >= 0.8 * (time.monotonic() - t0) / (2 * PERIOD_S)
+    # a poll: the group's wait and the rest of its request's late reply, then the owner's own,
+    # to the next grid point
+    poll_s = math.ceil(2 * late_s / PERIOD_S) * PERIOD_S
+    assert polls >= 0.8 * (time.monotonic() - t0) / poll_s
     assert not slot.group_polled and bus.stale_replies > 0
