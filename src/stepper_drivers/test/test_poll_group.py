@@ -173,7 +173,9 @@ def test_a_drive_that_refuses_the_block_read_is_polled_in_three_reads(tmp_path):
         time.sleep(0.5)
         polls, transactions = slot.polls - polls0, bus.transactions - transactions0
         assert polls >= 0.8 * (time.monotonic() - t0) * RATE_HZ
-        assert transactions == 3 * polls
+        # three requests a poll (the edges of the window may hold part of one, and a reply
+        # later than the group's wait costs the owner's poll three more)
+        assert 2.5 * polls <= transactions <= 3.5 * polls, f'{transactions} for {polls} polls'
         assert slot.group_polled and slot.connected and slot.last_error == ''
         assert bus.errors == 1          # the one refused block read
     finally:
