@@ -121,6 +121,10 @@ class RosClient:
         """Stop the spin thread, then the executor, then the node (the only safe order)."""
         self._stop.set()
         self.thread.join(timeout=5)
+        if self.thread.is_alive():
+            # still inside rclpy's wait: destroying the node it waits on ends the process with
+            # a segmentation fault (seen in CI); the node and its context go with the process
+            return
         self.executor.shutdown(timeout_sec=2.0)
         self.node.destroy_node()
         self.rclpy.try_shutdown(context=self.context)
