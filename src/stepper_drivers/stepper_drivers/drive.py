@@ -185,6 +185,10 @@ class Bus(abc.ABC):
     description: str = ''       # e.g. 'modbus tcp 127.0.0.1:1502', used in logs and diagnostics
     errors: int = 0             # transactions that failed (timeout, CRC, exception reply)
     transactions: int = 0
+    # What its drives sent by themselves that may change a state_from_cache drive's state (a
+    # frame that is not a repeat): +1 each, counted after what it changed is stored; 0 on
+    # buses without. Unchanged, what Drive.unchanged_until vouched for still holds.
+    changes: int = 0
 
     @abc.abstractmethod
     def open(self) -> None: ...
@@ -252,6 +256,15 @@ class Drive(abc.ABC):
 
     @abc.abstractmethod
     def read_state(self) -> DriveState: ...
+
+    def unchanged_until(self, state: DriveState) -> float:
+        """Until when (time.monotonic()) read_state() would return `state` (the caller's last
+        result of it, or its equal) and raise nothing, as long as the bus' `changes` stays as it
+        was before this call and nothing is commanded: a state_from_cache drive whose cache
+        nothing changed, up to its next liveness check (a heartbeat's deadline). Told without
+        a transaction or a wait. The bus owner then counts it polled without the call (a cycle
+        with nothing new). 0.0 (now: it would not, or in doubt): the default."""
+        return 0.0
 
     def state_requests(self) -> list[Any]:
         """The requests on a `nonblocking_polls` bus whose replies read_state() decodes

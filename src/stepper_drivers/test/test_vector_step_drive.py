@@ -151,6 +151,34 @@ def test_connect_configures_the_node_and_reads_state_from_pdos_only(bench):
     assert not bench.monitor.since(mark, 0x601), 'read_state() must not use SDO'
 
 
+def test_an_idle_drive_vouches_for_its_snapshot_until_a_txpdo_brings_something_new(bench):
+    """The TxPDO2 event timer repeats the same bytes: no change (RemoteDrive.changes), and the
+    drive vouches for its last snapshot (unchanged_until, what lets the bus owner skip the
+    poll). A TxPDO with new values ends that at once: the next read_state() shows them."""
+    d = bench.connect('axis1')
+    s = snap(d)
+    changes, bus_changes = d.link.changes, d.can.changes
+    mark = bench.monitor.mark()
+    wait(lambda: len(bench.monitor.since(mark, 0x281)) >= 3, 1.0, 'three TxPDO2 repeats')
+    assert (d.link.changes, d.can.changes) == (changes, bus_changes)
+    until = d.unchanged_until(s)
+    assert time.monotonic() < until <= time.monotonic() + vs.QUIET_CHECK_S
+    assert snap(d) is s
+    # a statusword change: four new TxPDOs, counted; the drive no longer vouches for s
+    complete(d.enable())
+    wait(lambda: d.link.changes > changes, 1.0, 'the new TxPDOs counted')
+    assert d.can.changes > bus_changes
+    assert d.unchanged_until(s) == 0.0
+    s2 = snap(d)
+    assert s2 is not s and s2.state == State.OPERATION_ENABLED
+    # a move: the position TxPDOs end the vouching for the standing snapshot
+    s2 = wait(lambda: (lambda x: x if d.unchanged_until(x) > time.monotonic() else None)(
+        snap(d)), 1.0, 'a snapshot of the enabled drive vouched for')
+    complete(d.move_to(3200, MOTION))
+    wait(lambda: d.unchanged_until(s2) == 0.0, 1.0, 'the move seen')
+    assert settle(d).position_steps == 3200
+
+
 def test_identity(bench):
     identity = complete(bench.connect('axis1').connect())
     assert identity['vendor_id'] == '0x000000BC'

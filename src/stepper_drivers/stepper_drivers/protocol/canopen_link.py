@@ -7,7 +7,7 @@ SYNC every `sync_period_s` (the drives' 0x1006 watchdog) and a heartbeat of its 
 periodic tasks that end with the bus or the process. Frames that do not fit what a subscribed
 COB-ID carries (length, heartbeat state) are dropped, counted as link errors and logged in one
 line (`CheckedNetwork`); so are the error frames the interface reports, which canopen ignores
-(`error_frames`, and `bus_off` where SocketCAN's encoding tells it; `ErrorFrameListener`).
+(`error_frames`, and `bus_off` where SocketCAN's encoding tells it; `CheckedListener`).
 Every drive on the bus is a `RemoteDrive` (a `canopen.BaseNode402` plus what the library leaves
 to the application):
   - a boot-up latch armed before an NMT reset (NmtMaster.wait_for_bootup() only looks at the
@@ -97,35 +97,44 @@ class CheckedNetwork(canopen.Network):
     SDO answer that is not 8 bytes, a TxPDO whose length is not its mapping's) never reaches
     canopen (whose callbacks raise KeyError/struct.error on them, logged with no count); it is
     counted in the bus' link errors and logged in one line. So is any error a callback raises.
+    The dispatch is canopen's Network.notify (subscribers by COB-ID, then the node scanner)
+    with the check in front, in one call: it runs for every frame in the receive thread.
     """
 
     def __init__(self, bus: 'CanBus'):
         super().__init__()
         self.owner = bus
-        self.listeners.append(ErrorFrameListener(bus))
+        self.listeners = [CheckedListener(self)]
 
     def notify(self, can_id: int, data: bytearray, timestamp: float) -> None:
         check = self.owner.frame_checks.get(can_id)
-        problem = check(bytes(data)) if check is not None else ''
+        problem = check(data) if check is not None else ''
         if not problem:
             try:
-                super().notify(can_id, data, timestamp)
+                callbacks = self.subscribers.get(can_id)
+                if callbacks:
+                    for callback in callbacks:
+                        callback(can_id, data, timestamp)
+                self.scanner.on_message_received(can_id)
                 return
             except Exception as exc:  # noqa: BLE001 - a frame must not stop the receive thread
                 problem = f'{type(exc).__name__}: {exc}'
         self.owner.garbage(can_id, bytes(data), problem)
 
 
-class ErrorFrameListener(can.Listener):
-    """canopen's MessageListener drops the error frames the interface reports; this one hands
-    them to the bus (CanBus.error_frame)."""
+class CheckedListener(can.Listener):
+    """canopen's MessageListener, which drops the error frames the interface reports, with
+    those handed to the bus (CanBus.error_frame): one listener, so python-can's Notifier makes
+    one call per frame."""
 
-    def __init__(self, bus: 'CanBus'):
-        self.bus = bus
+    def __init__(self, network: CheckedNetwork):
+        self.network = network
 
     def on_message_received(self, msg: can.Message) -> None:
         if msg.is_error_frame:
-            self.bus.error_frame(msg.arbitration_id, bytes(msg.data))
+            self.network.owner.error_frame(msg.arbitration_id, bytes(msg.data))
+        elif not msg.is_remote_frame:
+            self.network.notify(msg.arbitration_id, msg.data, msg.timestamp)
 
     def stop(self) -> None:
         pass
@@ -286,6 +295,13 @@ class CanBus(Bus):
     def is_open(self) -> bool:
         return self.network is not None
 
+    @property
+    def receiving(self) -> bool:
+        """Open, and its receive thread has not died (check() would not raise)."""
+        network = self.network
+        return network is not None and (network.notifier is None
+                                        or network.notifier.exception is None)
+
     def check(self) -> canopen.Network:
         """The network, or LinkError when closed or its receive thread died."""
         network = self.network
@@ -399,7 +415,9 @@ class RemoteDrive:
         self.name = name or f'node {node_id}'
         self.node: canopen.BaseNode402 | None = None
         self._generation = -1
-        self._cond = threading.Condition()
+        # What the receive thread records, several fields at a time: a waiter reads them under
+        # this lock (the waits are step-wise, nobody blocks on it).
+        self._lock = threading.Lock()
         self.bootups = 0                   # boot-up frames seen (state 0)
         self.heartbeat_at: float | None = None
         self.heartbeat_state: int | None = None
@@ -408,6 +426,15 @@ class RemoteDrive:
         self.emcy: EmcyRecord | None = None   # last EMCY with a code other than 0x0000
         self.emcy_count = 0
         self.emcy_listeners: list[Callable[[EmcyRecord], None]] = []
+        # +1 (receive thread) for each frame that may change what the node shows: a TxPDO whose
+        # bytes differ from the last one on its COB-ID, a heartbeat with another state or a
+        # boot-up, an EMCY; counted after what the frame changed is stored. Unchanged since a
+        # reader looked (before it read anything else), nothing received since has changed
+        # anything but the heartbeat's time (the drive's state cache, read_state()).
+        self.changes = 0
+        self._tpdo_last: dict[int, bytes] = {}
+        self._tpdo_handler: Callable[[int, bytearray], None] | None = None
+        self._tpdo_cobs: list[int] = []    # the COB-IDs _tpdo_frame is subscribed to
         checks = bus.frame_checks
         checks[0x700 + node_id] = check_heartbeat
         checks[0x080 + node_id] = check_length(8, 'an EMCY')            # COB-ID 0x1014
@@ -417,7 +444,7 @@ class RemoteDrive:
         self.sdo_answers: collections.deque[bytes] = collections.deque(maxlen=4)
 
     def _check_sdo_answer(self, data: bytes) -> str:
-        self.sdo_answers.append(data)
+        self.sdo_answers.append(bytes(data))
         return _SDO_ANSWER_LENGTH(data)
 
     def _received(self) -> str:
@@ -432,24 +459,31 @@ class RemoteDrive:
         network = self.bus.check()
         old = self.node
         if old is not None and self._generation == self.bus.generation:
-            # Network.add_node() drops the old node's SDO/NMT/EMCY callbacks, not its PDOs'.
+            # Network.add_node() drops the old node's SDO/NMT/EMCY callbacks, not its PDOs'
+            # nor the TxPDO frames' (watch_tpdos).
             for pdo in list(old.tpdo.values()) + list(old.rpdo.values()):
                 if pdo.enabled and pdo.cob_id in network.subscribers:
-                    try:
-                        network.unsubscribe(pdo.cob_id, pdo.on_message)
-                    except (KeyError, ValueError):
-                        pass
+                    _unsubscribe(network, pdo.cob_id, pdo.on_message)
+            for cob_id in self._tpdo_cobs:
+                _unsubscribe(network, cob_id, self._tpdo_frame)
+        self._tpdo_cobs, self._tpdo_handler = [], None
         node = canopen.BaseNode402(self.node_id, canopen.import_od(self.eds, self.node_id))
         node.sdo.RESPONSE_TIMEOUT = self.bus.timeout_s
         node.sdo.MAX_RETRIES = 1
+        # the heartbeat frame straight to _heartbeat_frame: canopen's NmtMaster.on_heartbeat
+        # keeps a state this driver never reads, under a condition nobody waits on. Set on the
+        # node before add_node(), which subscribes it (and unsubscribes it with the node).
+        node.nmt.on_heartbeat = self._heartbeat_frame
         network.add_node(node)
-        node.nmt.add_heartbeat_callback(self._on_heartbeat)
         node.emcy.add_callback(self._on_emcy)
         self.node = node
         self._generation = self.bus.generation
-        with self._cond:
+        with self._lock:
             self.heartbeat_at = None
             self.heartbeat_state = None
+            self._tpdo_last = {}
+            self.changes += 1
+            self.bus.changes += 1
         return node
 
     @property
@@ -458,37 +492,52 @@ class RemoteDrive:
             and self.bus.is_open
 
     # Callbacks (receive thread) -----------------------------------------------------------------
-    def _on_heartbeat(self, state: int) -> None:
-        with self._cond:
+    def _heartbeat_frame(self, _can_id: int, data: bytearray, _timestamp: float) -> None:
+        """A heartbeat or boot-up (CiA 301 error control: one byte, the NMT state, bit 7 the
+        node guarding toggle); check_heartbeat let only a well-formed one through."""
+        state = data[0] & 0x7F
+        with self._lock:
             self.heartbeat_at = time.monotonic()
+            changed = state != self.heartbeat_state or state == 0
             self.heartbeat_state = state
             self.bus.extra['heartbeat_rx'] += 1
             if state == 0:
                 self.bootups += 1
                 self.bus.extra['bootups'] += 1
-            self._cond.notify_all()
+            if changed:                 # after what it counts: see `changes`
+                self.changes += 1
+                self.bus.changes += 1
 
     def _on_emcy(self, error: EmcyError) -> None:
         data = bytes(error.data)
         record = EmcyRecord(error.code, error.register, data, time.monotonic(),
                             self.emcy_text(error.code, data[:5]))
         self.bus.extra['emcy_rx'] += 1
-        with self._cond:
+        with self._lock:
             self.emcy_count += 1
             if error.code != EMCY_NO_ERROR:
                 self.emcy = record
-            self._cond.notify_all()
+            self.changes += 1
+            self.bus.changes += 1
         logger.info('%s: EMCY 0x%04X %s (error register 0x%02X, data %s)', self.name,
                     record.code, record.text, record.register, record.data.hex())
         for listener in list(self.emcy_listeners):
             listener(record)
 
-    def on_tpdo(self, _map) -> None:
-        with self._cond:
-            self.tpdo_count += 1
-            self.tpdo_at = time.monotonic()
-            self.bus.extra['tpdo_rx'] += 1
-            self._cond.notify_all()
+    def _tpdo_frame(self, can_id: int, data: bytearray, _timestamp: float) -> None:
+        """A TxPDO of this node (its length checked by the network, configure_pdo): counted,
+        timed and handed to the handler of watch_tpdos. canopen's PdoMap is not in the way: it
+        decodes nothing the driver reads and locks a condition per frame that nobody waits on."""
+        self.tpdo_count += 1
+        self.tpdo_at = time.monotonic()
+        self.bus.extra['tpdo_rx'] += 1
+        handler = self._tpdo_handler
+        if handler is not None:
+            handler(can_id, data)
+        if data != self._tpdo_last.get(can_id):
+            self._tpdo_last[can_id] = bytes(data)
+            self.changes += 1
+            self.bus.changes += 1
 
     # Waiting ------------------------------------------------------------------------------------
     def wait(self, condition: Callable[[], bool], timeout_s: float) -> Steps[bool]:
@@ -496,7 +545,7 @@ class RemoteDrive:
         this object's lock); True when met, False at the timeout."""
         deadline = time.monotonic() + timeout_s
         while True:
-            with self._cond:
+            with self._lock:
                 if condition():
                     return True
             if time.monotonic() >= deadline:
@@ -515,7 +564,7 @@ class RemoteDrive:
 
     def reset_and_wait_bootup(self, command: str, timeout_s: float) -> Steps[bool]:
         """NMT reset (node or communication) with the boot-up latch armed before the frame."""
-        with self._cond:
+        with self._lock:
             seen = self.bootups
         self.nmt(command)
         return (yield from self.wait(lambda: self.bootups > seen, timeout_s))
@@ -649,18 +698,33 @@ class RemoteDrive:
                 self.bus.frame_checks[cob_id] = check_length(
                     pdo.length // 8, f'TxPDO{number} (mapped)')
 
-    def watch_tpdos(self) -> None:
-        """Count and time the TxPDOs (after BaseNode402.setup_pdos, so that waiters see the
-        values it has stored)."""
+    def watch_tpdos(self, handler: Callable[[int, bytearray], None]) -> None:
+        """The enabled TxPDOs' frames to handler(cob_id, data) (receive thread), counted and
+        timed, instead of to canopen's PdoMap (after BaseNode402.setup_pdos, which subscribes
+        the maps). The frame's bytes are the handler's to decode, as mapped."""
+        network = self.bus.check()
+        for cob_id in self._tpdo_cobs:
+            _unsubscribe(network, cob_id, self._tpdo_frame)
+        self._tpdo_handler = handler
+        self._tpdo_cobs = []
         for pdo in self._node().tpdo.values():
-            if pdo.enabled and self.on_tpdo not in pdo.callbacks:
-                pdo.add_callback(self.on_tpdo)
+            if pdo.enabled:
+                _unsubscribe(network, pdo.cob_id, pdo.on_message)
+                network.subscribe(pdo.cob_id, self._tpdo_frame)
+                self._tpdo_cobs.append(pdo.cob_id)
 
     def wait_heartbeat_state(self, state: int, since: float, timeout_s: float) -> Steps[bool]:
         """Wait for a heartbeat received after `since` (time.monotonic()) showing `state`."""
         return (yield from self.wait(
             lambda: self.heartbeat_state == state and self.heartbeat_at is not None
             and self.heartbeat_at > since, timeout_s))
+
+
+def _unsubscribe(network: canopen.Network, cob_id: int, callback: Callable) -> None:
+    try:
+        network.unsubscribe(cob_id, callback)
+    except (KeyError, ValueError):
+        pass
 
 
 def pack(data_type: str, value: int) -> bytes:

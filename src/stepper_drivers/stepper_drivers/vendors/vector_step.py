@@ -34,6 +34,7 @@ and interpolation share one PDO image.
 from __future__ import annotations
 
 import logging
+import math
 import time
 from typing import Any, Mapping
 
@@ -55,6 +56,8 @@ SAVE_TIMEOUT_S = 5.0           # Rloadsav 0x81 (EEPROM write) must read 0 again 
 SAVE_POLL_S = 0.02
 WARNING_READ_PERIOD_S = 1.0    # Rwarning is read by SDO at most this often while SW bit 7 is set
 PING_TIMEOUT_S = 0.2
+# unchanged_until vouches for at most this long: the bus' receive thread is looked at again
+QUIET_CHECK_S = 0.1
 RESCUE_BOOT_WAIT_S = 0.5       # boot-up wait after a reset sent to a node that gave no SDO answer
 # A statusword change goes out in every TxPDO back to back; the other drives' bursts, SYNC and
 # heartbeats may come in between. The wire time of one such round is the bound of the wait for a
@@ -255,6 +258,11 @@ class VectorStepDrive(Cia402Drive, InterpolatingDrive):
         self._tpdo_layouts: dict[int, tuple] = {}     # COB-ID: (struct, indexes) to store it
         self._sdo_read: set[int] = set()  # TxPDOs whose objects _wait_for_burst read by SDO
         self._snapshot: tuple[tuple | None, DriveState | None] = (None, None)  # (key, state)
+        # (link.changes, controlword, homing, the snapshot) under which read_state gives the
+        # snapshot again without a look at the cache, until _alive_until (unchanged_until); None:
+        # look
+        self._quiet: tuple[int, int | None, HomingState, DriveState] | None = None
+        self._alive_until = 0.0
         self._burst_given_up: int | None = None
         self._ip_active = False            # start_interpolation done; no stop or error since
 
@@ -341,6 +349,7 @@ class VectorStepDrive(Cia402Drive, InterpolatingDrive):
     # ------------------------------------------------------------------ life cycle
     def connect(self) -> Steps[dict[str, str]]:
         self._configured = False
+        self._quiet = None
         self.link.attach()
         self.link.emcy = None
         self._written.clear()
@@ -490,21 +499,15 @@ class VectorStepDrive(Cia402Drive, InterpolatingDrive):
         node = self.link.node
         node.setup_pdos(upload=False)
         self._tpdo_entries, self._tpdo_layouts = {}, {}
-        for number in range(1, len(vm.DRIVER_TPDOS) + 1):   # before the link's notifying one
+        for number in range(1, len(vm.DRIVER_TPDOS) + 1):
             pdo = node.tpdo[number]
             entries = vm.DRIVER_TPDOS[number - 1]
             self._tpdo_entries[pdo.cob_id] = entries
             self._tpdo_layouts[pdo.cob_id] = (self.link.pdo_struct(entries),
                                               tuple(index for index, _, _ in entries))
-            # _on_tpdo stores what a TxPDO carries, canopen's own cache update would store
-            # every frame, also one older than what the cache holds
-            if node.on_TPDOs_update_callback in pdo.callbacks:
-                pdo.callbacks.remove(node.on_TPDOs_update_callback)
-            if self._on_tpdo not in pdo.callbacks:
-                pdo.add_callback(self._on_tpdo)
-        self.link.watch_tpdos()
+        self.link.watch_tpdos(self._on_tpdo)
 
-    def _on_tpdo(self, pdo_map) -> None:
+    def _on_tpdo(self, cob: int, data: bytearray) -> None:
         """(receive thread) Store what a TxPDO carries in the cache (tpdo_values).
 
         Every DRIVER_TPDOS mapping starts with the statusword, and a change of it sends all
@@ -515,9 +518,8 @@ class VectorStepDrive(Cia402Drive, InterpolatingDrive):
         of an older state is still newer than the cache, except after _wait_for_burst read its
         objects by SDO for the newest state: then it is dropped until its own TxPDO of that
         state comes."""
-        cob = pdo_map.cob_id
         layout, indexes = self._tpdo_layouts[cob]
-        fields = layout.unpack_from(pdo_map.data)     # (the bus checked the frame's length)
+        fields = layout.unpack_from(data)     # (the bus checked the frame's length)
         sw = fields[0]
         self._pdo_statusword[cob] = sw
         newest = self._pdo_statusword.get(self._state_cob, sw)
@@ -628,13 +630,43 @@ class VectorStepDrive(Cia402Drive, InterpolatingDrive):
 
     def read_state(self) -> DriveState | Steps[DriveState]:
         """The state from the TxPDO cache. The last snapshot again while nothing it was made of
-        changed (an idle drive's TxPDO2 event timer repeats the same values): the poll of 8
-        drives at 50 Hz costs 8 dictionary reads each, not 8 snapshots. Step-wise only while a
-        burst is incomplete, a fault is read, or a warning is due."""
+        changed: an idle drive's TxPDO2 event timer repeats the same bytes, which the link does
+        not count as a change (RemoteDrive.changes). While the link counted no change, this
+        driver commanded nothing (controlword, homing) and the heartbeat's deadline is ahead,
+        the poll is that look (`unchanged_until`); else the liveness checks and the snapshot key.
+        Step-wise only while a burst is incomplete, a fault is read, or a warning is due."""
+        state = self._snapshot[1]
+        if state is not None and self.unchanged_until(state):
+            return state
+        self._quiet = None
+        changes = self.link.changes              # before what it vouches for
         self._check_alive()
         if self._snapshot_key() == self._snapshot[0]:
+            self._quiet = (changes, self.cia.controlword, self._homing, self._snapshot[1])
+            self._alive_until = self._heartbeat_deadline()
             return self._snapshot[1]
         return self._read_state_steps()
+
+    def unchanged_until(self, state: DriveState) -> float:
+        """While the link counted no change, the controlword and homing are as the snapshot
+        had them, and the bus receives: until the heartbeat's deadline, and at most
+        QUIET_CHECK_S ahead (a dead receive thread shows only here when the heartbeat is off)."""
+        if self._quiet != (self.link.changes, self.cia.controlword, self._homing, state) \
+                or not self.can.receiving:       # the bus open, its receive thread alive
+            return 0.0
+        now = time.monotonic()
+        if now >= self._alive_until:
+            self._alive_until = self._heartbeat_deadline()    # from the last heartbeat
+            if now >= self._alive_until:
+                return 0.0
+        return min(self._alive_until, now + QUIET_CHECK_S)
+
+    def _heartbeat_deadline(self) -> float:
+        """When _check_alive fails for the heartbeat, unless another one comes before."""
+        if not self.heartbeat_ms:
+            return math.inf
+        at = self.link.heartbeat_at
+        return (self._connected_at if at is None else at) + self.heartbeat_timeout_s
 
     def _snapshot_key(self) -> tuple:
         """What a snapshot is made of, read before it (so a change meanwhile makes the next
@@ -650,6 +682,7 @@ class VectorStepDrive(Cia402Drive, InterpolatingDrive):
 
     def _read_state_steps(self) -> Steps[DriveState]:
         yield from self._wait_for_burst()
+        changes = self.link.changes
         key = self._snapshot_key()
         values = self._values()
         sw = self._read_statusword()
@@ -691,8 +724,10 @@ class VectorStepDrive(Cia402Drive, InterpolatingDrive):
             mode=mode_text, status_word=sw, position_steps=position, velocity_steps_s=velocity_hz,
             measured_at_s=self._position_measured_at_s(position, moving))
         # a fault or a warning is read again (SDO) at its own pace: never from the last snapshot
-        self._snapshot = ((key if not fault and not sw & cia402.SW_BIT_WARNING else None),
-                          snapshot)
+        keyed = not fault and not sw & cia402.SW_BIT_WARNING
+        self._snapshot = (key if keyed else None), snapshot
+        self._quiet = (changes, self.cia.controlword, self._homing, snapshot) if keyed else None
+        self._alive_until = self._heartbeat_deadline()
         return snapshot
 
     def _position_measured_at_s(self, position: int, moving: bool) -> float | None:
