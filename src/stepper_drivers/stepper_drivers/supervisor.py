@@ -202,13 +202,29 @@ class BusSupervisor:
         self._cycle_polled: set[str] = set()
         self._last_cycle_t = 0.0
         self._grid_t0 = clock()
-        self._idle = False          # the owner waits on _cv (under _cv)
+        self._idle = False          # the owner waits for its next wake-up (under _cv)
+        # What the idle owner waits on: held except while a wake-up is pending. Only _notify
+        # releases it (under _cv, and only while held: never twice), only the owner takes it.
+        # One lock operation a wait; a Condition's wait costs a dozen more in Python, at
+        # every cycle of an idle bus (docs/benchmarks.md).
+        self._wake = threading.Lock()
+        self._wake.acquire()
         self._events = 0            # _notify() calls: what other threads asked for (under _cv)
         self._closed = False        # _shutdown_drives ran: the drives stopped, the bus closed
         # the poll group's thread has the bus and the lent drives (lend() to give_back(), under
         # _cv): the owner waits meanwhile; _loan_waiter: it does (give_back wakes it)
         self._lent = False
         self._loan_waiter = False
+        # (_events, the drives' next poll, the owner's next event, _vouched) after a quiet
+        # cycle: the next pass may go straight to the next one (_after_quiet_cycle)
+        self._quiet_pass: tuple[int, float, float, tuple[int, float]] | None = None
+        self._vouched: tuple[int, float] = (0, 0.0)   # (bus.changes, until): _quiet_cycle
+        self._fresh_s = 0.0         # the state_fresh_s the quiet cycles last gave the drives
+        # (owner thread, during on_cycle) the cycle is a quiet pass' (_work_once): since the
+        # cycle before, no other thread asked for anything, the owner did nothing else and no
+        # drive has anything new; what the slots hold is as it was then (on_cycle may skip a
+        # look)
+        self.cycle_unchanged = False
         self.cycles = 0
         self.passes = 0             # _work_once calls: the owner's wake-ups and units of work
 
@@ -374,7 +390,9 @@ class BusSupervisor:
         """(Under _cv, from another thread) wake the owner: a job, a timer, a waiter or a
         request came. A pass of polls ends at it (`_poll_due`)."""
         self._events += 1
-        self._cv.notify()
+        self._cv.notify()                  # an owner that waits for the poll group's loan
+        if self._idle and self._wake.locked():
+            self._wake.release()
 
     # ------------------------------------------------------------------------ owner thread
     def _log_event(self, level: str, drive: str, text: str) -> None:
@@ -416,14 +434,21 @@ class BusSupervisor:
                 if request is not None:
                     self._shutdown_drives(*request)
                     return
+                # What another thread asks for during the pass (a job, a timer, a waiter: all
+                # by _notify) is for the next pass, not for a wait: a pass that returns a delay
+                # saw no job ready when it looked.
+                events = self._events
                 delay = self._work_once()
                 if delay > 0:
                     with self._cv:
-                        if not self._urgent and self._shutdown_request is None \
-                                and not self._new_command_ready():
-                            self._idle = True
-                            self._cv.wait(delay)
-                            self._idle = False
+                        if self._urgent or self._shutdown_request is not None \
+                                or self._events != events:
+                            continue
+                        self._idle = True
+                    # a _notify() from here on releases _wake: the wait ends at once
+                    self._wake.acquire(timeout=delay)
+                    with self._cv:
+                        self._idle = False
         except Exception as exc:  # noqa: BLE001 - the drives are stopped below, whatever
             why = f'bus owner failed: {exc!r}'
             try:
@@ -435,9 +460,6 @@ class BusSupervisor:
                 self.failure = why
                 self.on_failure(self, why)
 
-    def _new_command_ready(self) -> bool:
-        return any(s.queue and s.active is None for s in self.slots.values())
-
     def _work_once(self) -> float:
         """Do one unit of work (one transaction or one step); return how long to sleep.
 
@@ -448,6 +470,12 @@ class BusSupervisor:
         transaction: the CPU budget, docs/benchmarks.md)."""
         self.passes += 1
         now = self.clock()
+        events = self._events
+        quiet, self._quiet_pass = self._quiet_pass, None
+        if quiet is not None and quiet[0] == events and not self._urgent \
+                and quiet[1] <= now < quiet[2] \
+                and self._quiet_cycle(self._slot_list, now, quiet[3]):
+            return self._after_quiet_cycle(events)
         if self._urgent:                   # (a deque's truth needs no lock; the pop does)
             with self._cv:
                 urgent = self._urgent.popleft() if self._urgent else None
@@ -504,7 +532,14 @@ class BusSupervisor:
             self._connect(reconnect)
             return 0.0
         if due is not None:   # the longest due first: when polls overrun, every drive its turn
-            self._poll_due(dues, now)
+            if len(dues) == len(self._slot_list) and self._quiet_cycle(dues, now):
+                return self._after_quiet_cycle(events)
+            if self._poll_due(dues, now):
+                # every due poll done and published, nothing else was due at the pass' start
+                # (what came since is in _events or due by its time): the next wake-up, without
+                # a pass over the slots to find it
+                now = self.clock()
+                return self._next_wake(now) - now
             return 0.0
         if not any(s.connected for s in self._slot_list) \
                 and now >= self._last_cycle_t + self._period_s():
@@ -512,30 +547,94 @@ class BusSupervisor:
             return 0.0
         return self._next_wake(now) - now
 
-    def _poll_due(self, dues: list[Slot], now: float) -> None:
+    def _poll_due(self, dues: list[Slot], now: float) -> bool:
         """The longest-due drive's poll; then the other drives due in the same pass, while
         nothing else is to be done: no other thread asked for anything meanwhile (a job, an
         urgent one, a timer, a waiter: `_events`) and, once a poll went on the wire (which takes
         a transaction's time), none of the owner's own events is due (`_next_event_t`: a
         watchdog deadline, a step, a reconnect). A cycle's polls take one pass of the owner,
         not one per drive; a poll that continues step-wise or loses its drive ends the pass.
-        A command waits for at most the one transaction in flight, as between passes."""
+        A command waits for at most the one transaction in flight, as between passes.
+        True when every due poll was done (the rest of the pass has nothing to do)."""
         dues.sort(key=lambda s: s.next_poll_t)
         events = self._events
         horizon: float | None = None
         for k, slot in enumerate(dues):
             if k and (self._urgent or self._events != events):
-                return
+                return False
             transactions = self.bus.transactions
             self._poll_step(slot, now)
             if slot.poll_steps is not None or not slot.connected:
-                return
+                return False
             if not slot.drive.state_from_cache or self.bus.transactions != transactions:
                 now = self.clock()                   # a poll on the wire: time passed
                 if horizon is None:
                     horizon = self._next_event_t()
                 if now >= horizon:
-                    return
+                    return False
+        return True
+
+    def _quiet_cycle(self, dues: list[Slot], now: float,
+                     vouched: tuple[int, float] | None = None) -> bool:
+        """A cycle in which no drive has anything new: every drive of the bus is due, and each
+        says its read_state() would give the very state of its last poll
+        (Drive.unchanged_until: a cache that nothing changed since, no frame, no command).
+        Then the polls are that, the cycle's bookkeeping one loop, and its publishing as after
+        any cycle. False, with nothing done, at the first drive that is not so (a poll under
+        way, a waiter): then the polls go one by one (_poll_step). On 8 idle CANopen drives at
+        50 Hz this is most cycles (docs/benchmarks.md).
+
+        vouched: (the bus' `changes`, until when) the drives vouched for at the last quiet
+        cycle, given by a pass that knows nothing else happened since (no request, no work of
+        the owner's: the quiet pass of _work_once); while the bus counted no change and that
+        time is ahead, the drives are not asked again."""
+        changes = self.bus.changes                   # before what the drives vouch for
+        if vouched is not None and vouched[0] == changes and now < vouched[1]:
+            until = vouched[1]
+        else:
+            until = math.inf
+            for slot in dues:
+                if not slot.connected or slot.poll_steps is not None or slot.poll_waiters:
+                    return False
+                t = slot.drive.unchanged_until(slot.state)
+                if t <= now:
+                    return False
+                until = min(until, t)
+        self._vouched = (changes, until)
+        self._jobs_since_poll = 0
+        next_t = self._next_grid_t(now)
+        period = self._period_s()
+        t = self.clock()
+        for slot in dues:
+            if slot.owner_polls or slot.group_polled:
+                slot.owner_polls = slot.group_polled = False
+            slot.next_poll_t = next_t
+            state = slot.state
+            slot.sample = (state, t if state.measured_at_s is None else state.measured_at_s)
+            slot.polls += 1
+        if period != self._fresh_s:        # (the rate can change at run time)
+            self._fresh_s = period
+            for slot in dues:
+                slot.drive.state_fresh_s = period
+        self.cycle_unchanged = vouched is not None     # the quiet pass': nothing else since
+        try:
+            self._cycle()
+        finally:
+            self.cycle_unchanged = False
+        return True
+
+    def _after_quiet_cycle(self, events: int) -> float:
+        """The delay to the next wake-up after a quiet cycle, and what lets the next pass
+        skip its look over the slots (`_quiet_pass`): nothing else was to be done when this
+        pass began (`events` other threads' requests then), every drive's next poll is at one
+        time, and the owner's own next event (a timer, a deadline, a step) is no sooner than
+        it was found now. The next pass goes straight to a quiet cycle while that holds: no
+        request came since, the polls are due, and that event is not."""
+        now = self.clock()
+        next_t = self._slot_list[0].next_poll_t
+        horizon = self._next_event_t()
+        self._quiet_pass = (events, next_t, horizon, self._vouched)
+        return min(next_t, horizon, now + 0.5) - now
 
     def _by_age(self) -> list[Slot]:
         if not any(s.queue for s in self.slots.values()):   # the usual case: no lock taken
@@ -556,32 +655,43 @@ class BusSupervisor:
         return self._grid_t0 + (math.floor((now - self._grid_t0) / period) + 1) * period
 
     def _next_wake(self, now: float) -> float:
-        times = [now + 0.5, self._next_event_t()]
-        if not any(s.connected for s in self._slot_list):
-            times.append(self._last_cycle_t + self._period_s())
+        """The owner's next wake-up: its next event, the next poll (a poll the group makes:
+        its grace later), at most half a second ahead. (Once a cycle: loops, no lists.)"""
+        t = min(now + 0.5, self._next_event_t())
         grace = max(GROUP_GRACE_S, 2.0 * self._period_s())
-        times += [s.next_poll_t + grace if s.group_polled else s.next_poll_t
-                  for s in self._slot_list
-                  if s.connected and (s.active is None or s.active.polled)]
-        return min(times)
+        connected = False
+        for s in self._slot_list:
+            if s.connected:
+                connected = True
+                if s.active is None or s.active.polled:
+                    poll_t = s.next_poll_t + grace if s.group_polled else s.next_poll_t
+                    if poll_t < t:
+                        t = poll_t
+        if not connected:
+            t = min(t, self._last_cycle_t + self._period_s())
+        return t
 
     def _next_event_t(self) -> float:
         """When the owner next has something to do other than a due poll: a step of an
         operation or of a poll, a watchdog deadline, a reconnect, a timer, a waiter's
         time-out (math.inf: nothing)."""
-        times = [math.inf]
+        t = math.inf
         for s in self._slot_list:
-            if s.active is not None and s.active_steps is not None:
-                times.append(s.wake_t)
-            if s.poll_steps is not None:
-                times.append(s.poll_wake_t)
+            if s.active is not None and s.active_steps is not None and s.wake_t < t:
+                t = s.wake_t
+            if s.poll_steps is not None and s.poll_wake_t < t:
+                t = s.poll_wake_t
             if s.connected:
                 if s.velocity_deadline is not None:
-                    times.append(max(s.velocity_deadline, s.watchdog_retry_t))
-            elif (not s.not_driven or s.identity_recheck) and s.active is None:
-                times.append(s.next_connect_t)      # (a connect under way wakes at wake_t)
-            times += [t for t, _ in s.poll_waiters]
-        return min(times + [t for t, _ in self._timers])
+                    t = min(t, max(s.velocity_deadline, s.watchdog_retry_t))
+            elif (not s.not_driven or s.identity_recheck) and s.active is None \
+                    and s.next_connect_t < t:
+                t = s.next_connect_t                # (a connect under way wakes at wake_t)
+            for w, _ in s.poll_waiters:
+                t = min(t, w)
+        for w, _ in self._timers:
+            t = min(t, w)
+        return t
 
     # ------------------------------------------------------------------------------ jobs
     def _start_job(self, slot: Slot) -> None:

@@ -350,6 +350,128 @@ def test_cached_polls_of_a_cycle_run_together_and_an_urgent_job_still_goes_betwe
         sup.shutdown(0.5)
 
 
+class QuietDrive(CachedDrive):
+    """A cache-reading drive that can say its state is unchanged (Drive.unchanged_until): until
+    `until`, as long as the bus counted no change, as a CANopen drive with no new TxPDO."""
+
+    def __init__(self, bus, name, params=None):
+        super().__init__(bus, name, params)
+        self.until = 0.0                 # what unchanged_until vouches for (0: nothing)
+        self.asked = 0                   # unchanged_until calls
+        self.state = DriveState(state=State.OPERATION_ENABLED, enabled=True)
+
+    def read_state(self):
+        super().read_state()
+        return self.state
+
+    def unchanged_until(self, state):
+        self.asked += 1
+        return self.until if state is self.state else 0.0
+
+
+def quiet_bus(n=4):
+    line = Line()
+    drives = {f'axis{i}': QuietDrive(line, f'axis{i}') for i in range(1, n + 1)}
+    sup = BusSupervisor(line, drives, {'publish_rate_hz': RATE_HZ, 'command_timeout_s': 0.3,
+                                       'reconnect_period_s': 0.05})
+    return line, drives, sup
+
+
+def test_a_cycle_with_nothing_new_reads_no_drive_and_a_change_is_read_in_the_next():
+    """Drives that vouch for their state (a cache nothing changed) are counted polled without a
+    read_state() in every cycle, and published each cycle; the vouching is asked again when the
+    bus counts a change, and a drive that then has something new is read in that cycle."""
+    line, d, sup = quiet_bus()
+    for drive in d.values():
+        drive.until = float('inf')
+    sup.start()
+    try:
+        wait_for(lambda: all(s.polls >= 1 for s in sup.slots.values()), 3.0, 'first polls')
+        cycles0, polls0 = sup.cycles, sup.slots['axis2'].polls
+        start = time.monotonic()
+        wait_for(lambda: sup.cycles >= cycles0 + 6, 3.0, 'six cycles')
+        assert line.calls(call='cached read') and \
+            not [w for w in line.calls(call='cached read') if w[0] >= start]
+        assert sup.slots['axis2'].polls >= polls0 + 5
+        assert d['axis2'].state is sup.slots['axis2'].state
+        # vouched for without a change on the bus: not asked again each cycle
+        asked = d['axis3'].asked
+        wait_for(lambda: sup.cycles >= cycles0 + 10, 3.0, 'four more cycles')
+        assert d['axis3'].asked == asked, 'asked again although the bus counted no change'
+        # something new on axis3: the bus counts it, axis3 no longer vouches
+        new = DriveState(state=State.OPERATION_ENABLED, enabled=True, position_steps=42)
+        d['axis3'].state = new
+        line.changes += 1
+        wait_for(lambda: sup.slots['axis3'].state is new, 4.0 / RATE_HZ, 'the new state polled')
+        assert line.calls('axis3', 'cached read')[-1][0] >= start
+    finally:
+        sup.shutdown(0.5)
+
+
+def test_a_quiet_cycle_asks_again_when_its_vouching_ends_and_a_waiter_gets_a_real_poll():
+    """What a drive vouches for ends (a heartbeat deadline): it is asked again, and read when
+    it no longer vouches. A poll waiter (wait_poll) is answered after a real read_state()."""
+    line, d, sup = quiet_bus(n=2)
+    for drive in d.values():
+        drive.until = time.monotonic() + 3.0 / RATE_HZ
+    sup.start()
+    try:
+        wait_for(lambda: all(s.polls >= 1 for s in sup.slots.values()), 3.0, 'first polls')
+        asked = d['axis1'].asked
+        wait_for(lambda: d['axis1'].asked > asked, 5.0 / RATE_HZ, 'axis1 asked again')
+        start = time.monotonic()
+        d['axis1'].until = 0.0                            # (its deadline passed)
+        wait_for(lambda: [w for w in line.calls('axis1', 'cached read') if w[0] >= start],
+                 3.0 / RATE_HZ, 'axis1 read once it no longer vouches')
+        d['axis2'].until = float('inf')
+        d['axis1'].until = float('inf')
+        mark = time.monotonic()
+        answered = threading.Event()
+        sup.wait_poll('axis2', 1.0, lambda ok: ok and answered.set())
+        assert answered.wait(3.0 / RATE_HZ), 'the waiter not answered'
+        assert [w for w in line.calls('axis2', 'cached read') if w[0] >= mark], \
+            'a waiter answered without a poll'
+    finally:
+        sup.shutdown(0.5)
+
+
+def test_a_timer_set_after_the_owner_chose_its_wait_wakes_it_at_its_time():
+    """A request that comes after the owner computed how long to sleep, before it sleeps (here:
+    a timer, set from another thread at that moment), is not lost: the owner does not sleep
+    until its next poll. At one poll a second, a lost wake-up delays the timer by a second."""
+    fired, set_at = [], []
+
+    class Owner(BusSupervisor):
+        hook = None
+
+        def _next_wake(self, now):
+            t = super()._next_wake(now)
+            hook, Owner.hook = Owner.hook, None
+            if hook is not None:
+                th = threading.Thread(target=hook)
+                th.start()
+                th.join()
+            return t
+
+    line = Line()
+    drives = {'axis1': CachedDrive(line, 'axis1')}
+    sup = Owner(line, drives, {'publish_rate_hz': 1.0, 'command_timeout_s': 0.3,
+                               'reconnect_period_s': 0.05})
+    sup.start()
+    try:
+        wait_for(lambda: sup.slots['axis1'].polls >= 1 and sup.idle, 3.0, 'first poll')
+
+        def set_timer():
+            set_at.append(time.monotonic())
+            sup.after(0.05, lambda: fired.append(time.monotonic()))
+        Owner.hook = set_timer
+        sup.poll_soon('axis1')                     # a pass that ends in a wait
+        wait_for(lambda: fired, 2.5, 'the timer fired')
+        assert fired[0] - set_at[0] < 0.05 + 0.25, f'timer late by {fired[0] - set_at[0]:.3f} s'
+    finally:
+        sup.shutdown(0.5)
+
+
 def test_a_command_during_a_cycles_polls_goes_out_after_the_poll_in_flight(bus):
     """The polls of a cycle on the wire run back to back in one pass of the owner; a command
     that comes during one of them is the next transaction, before the cycle's other polls."""
