@@ -149,6 +149,28 @@ def test_an_idle_drive_reports_at_the_status_rate_not_at_each_of_its_txpdos(rig)
     assert len(set(got)) == 1, got                   # nothing changed: standing
 
 
+def test_a_refusal_to_an_idle_drive_shows_in_its_status_at_once(rig):
+    """Idle drives make cycles with nothing new, whose statuses are not looked at again; a
+    refused command is still in the next status, not only in the one status_rate_hz brings."""
+    rate_hz = next(p.default for p in BUS_PARAMS if p.name == 'status_rate_hz')
+    st = rig.status('axis1', lambda m: not m.enabled and not m.moving, what='axis1 idle')
+    got = []
+    sub = rig.ros.node.create_subscription(
+        DriveStatus, '/vector_step_node/axis1/status',
+        lambda m: got.append((time.monotonic(), m.commands_refused, m.last_refusal)), 50)
+    try:
+        time.sleep(1.0 / rate_hz)                   # idle cycles, a status at the rate
+        t0 = time.monotonic()
+        rig.command('axis1', 'position_command', 0.25)
+        wait_for(lambda: any(n > st.commands_refused for _, n, _ in got), 2.0 / rate_hz,
+                 'the refusal in a status')
+    finally:
+        rig.ros.node.destroy_subscription(sub)
+    t, n, why = next(m for m in got if m[1] > st.commands_refused)
+    assert 'not enabled' in why, why
+    assert t - t0 < 0.5 / rate_hz, f'the refusal came {t - t0:.3f} s later ({rate_hz:g} Hz)'
+
+
 def test_jog_runs_in_aec_velocity_mode_and_the_watchdog_stops_it(rig):
     rig.enable('axis1')
     track = Track(rig.ros, rig.true_topic('axis1'))

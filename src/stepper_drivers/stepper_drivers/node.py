@@ -78,7 +78,8 @@ class DriveHandle:
         self.name = cfg.name
         self.drive = drive
         self.conv = cfg.conversion
-        self.sup: BusSupervisor | None = None   # set when the buses are built
+        self._sup: BusSupervisor | None = None   # set when the buses are built
+        self.slot: Slot | None = None            # its slot in that supervisor (with it)
         self.commands_refused = 0
         self.last_refusal = ''
         self.refusal_logged = ''           # the kind of refusal logged last (see refuse)
@@ -89,8 +90,13 @@ class DriveHandle:
         self.publish_waiters: list[concurrent.futures.Future] = []
 
     @property
-    def slot(self) -> Slot:
-        return self.sup.slots[self.name]
+    def sup(self) -> BusSupervisor | None:
+        return self._sup
+
+    @sup.setter
+    def sup(self, sup: BusSupervisor | None) -> None:
+        self._sup = sup
+        self.slot = None if sup is None else sup.slots[self.name]
 
     @property
     def state(self) -> DriveState:
@@ -160,6 +166,7 @@ class DriveNode(Node):
         # what the owner threads publish (its publishers come with the interfaces)
         self.publishing = StatePublisher(self)
         self._refusal_lock = threading.Lock()  # commands and services both count refusals
+        self.refusals = 0                      # of every drive (under _refusal_lock)
         self._handlers = 0                     # service and action callbacks running (handling)
         self._handlers_cv = threading.Condition()
         # The command subscriptions' own node: no global arguments (a launch file's
@@ -364,6 +371,7 @@ class DriveNode(Node):
                 h.refusal_logged = kind
             h.last_refusal = why      # before the count: a status published in between is whole
             h.commands_refused += 1
+            self.refusals += 1        # after: StatePublisher.publish_states reads it first
         raise CommandRefused(why)
 
     def check_link(self, h: DriveHandle, what: str, safe: bool = False) -> None:

@@ -29,6 +29,9 @@ if TYPE_CHECKING:
     from .supervisor import BusSupervisor
 
 
+CLOCK_KIND_CHECK_S = 1.0
+
+
 def settle(fut: concurrent.futures.Future, value: Any) -> None:
     """Resolve fut with value unless it is resolved already (a timer and the owner may race)."""
     try:
@@ -50,6 +53,12 @@ class StatePublisher:
         self._js_due = 0.0
         self._js_cdr: JointStateCdr | None = None     # the joint names, encoded once
         self._js_handles: list[DriveHandle] = []
+        self._sup_handles: dict[BusSupervisor, list[DriveHandle]] = {}   # a bus' drives
+        # a bus' (node.refusals, link health) at its last look at the status keys, and its
+        # drives' next status due then (publish_states)
+        self._statuses_seen: dict[BusSupervisor, tuple] = {}
+        self._status_due_min: dict[BusSupervisor, float] = {}
+        self._context_live = True              # until rclpy's context shuts down
         # (handles, their states, positions, velocities, efforts) of the last joint_states:
         # the values again while the states are equal (idle drives)
         self._js_values: tuple = ((), (), (), (), None)
@@ -59,11 +68,20 @@ class StatePublisher:
         # drive name -> (what its DiagnosticStatus is made of, the status): sent again as is
         self._diag_drive: dict[str, tuple[tuple, DiagnosticStatus]] = {}
         self.status_pubs = {}
+        self._sim_time = False                 # the node's clock runs on /clock (stamp_pair)
+        self._clock_kind_due = 0.0
 
     def create_publishers(self) -> None:
         reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
         self.joint_pub = self._publisher(JointState, 'joint_states', reliable)
         self.diag_pub = self._publisher(DiagnosticArray, '/diagnostics', 10)
+        # publish_states stops at the context's shutdown (rclpy.shutdown, a signal): a flag
+        # set by its callback, not Context.ok(), which took 30 us a cycle
+        self._context_live = self.node.context.ok()
+        self.node.context.on_shutdown(self._context_shut_down)
+
+    def _context_shut_down(self) -> None:
+        self._context_live = False
 
     def add_drive(self, h: 'DriveHandle', ns: str) -> None:
         """The status publisher of drive h, under the namespace ns (`~/<drive>/`)."""
@@ -73,6 +91,8 @@ class StatePublisher:
         """The node built its drives again: the joint names are encoded anew."""
         with self._js_lock:
             self._js_cdr = None
+            self._sup_handles = {}
+            self._statuses_seen = {}
 
     def _publisher(self, msg_type, topic: str, qos):
         if self.node.managed:      # publishes only while active (LifecycleNodeMixin manages it)
@@ -84,9 +104,11 @@ class StatePublisher:
         waiter awaited (a service or action that changed the drive: `DriveNode.published`): then
         joint_states and that drive's status go out now, whatever is due, and its waiters are
         answered."""
-        handles = [self.node.handles[n] for n in sup.slots]
+        handles = self._sup_handles.get(sup)
+        if handles is None:
+            handles = self._sup_handles[sup] = [self.node.handles[n] for n in sup.slots]
         waiting = [h for h in handles if h.publish_waiters]
-        if not self.node.context.ok():
+        if not self._context_live:
             self._answer_publish_waiters(waiting, False)
             return
         stamp = pair = None
@@ -95,10 +117,23 @@ class StatePublisher:
             pair = self.stamp_pair()
             self._publish_joint_states(*pair)
         # A status goes out when something in it changed, and at status_rate_hz otherwise:
-        # at 50 Hz the messages of idle drives cost more CPU than polling them.
+        # at 50 Hz the messages of idle drives cost more CPU than polling them. Nothing in
+        # them changed (no status key to build) after a cycle the owner calls unchanged, with
+        # no refusal and the same link health since the last one, until a status is due.
+        health = sup.bus.health()
+        refusals = self.node.refusals          # before the keys: a refusal after is seen next
+        seen = self._statuses_seen.get(sup)
+        if sup.cycle_unchanged and not waiting and seen is not None \
+                and seen == (refusals, health) and now < self._status_due_min[sup]:
+            if now >= self._diag_due:
+                self._publish_diagnostics_due(now)
+            return
         counters = None
         for h in handles:
-            key = self._status_key(h)
+            # the status fields that make a new status worth sending (not the link counters)
+            slot = h.slot
+            key = (slot.state, slot.connected, slot.not_driven, h.commands_refused,
+                   h.last_refusal, slot.velocity_deadline is not None, health)
             if key == h.status_key and now < h.status_due and not h.publish_waiters:
                 continue
             if counters is None:
@@ -109,6 +144,8 @@ class StatePublisher:
             self.status_pubs[h.name].publish(self._status_msg(h, stamp, counters))
             h.status_key = key
             h.status_due = now + 1.0 / self.node.bus_params['status_rate_hz']
+        self._statuses_seen[sup] = (refusals, health)
+        self._status_due_min[sup] = min(h.status_due for h in handles)
         self._answer_publish_waiters(waiting, True)
         if now >= self._diag_due:
             self._publish_diagnostics_due(now)
@@ -140,9 +177,15 @@ class StatePublisher:
         """The node clock's now as (sec, nanosec). Without simulated time that is the system
         clock, read directly: rclpy's Clock.now().to_msg() cost 60 us a cycle on the owner's
         cold cache, half of it for a Time object thrown away; the joint_states, encoded by
-        hand, need no message at all."""
+        hand, need no message at all. Whether the clock runs on simulated time is looked up
+        once per CLOCK_KIND_CHECK_S (25 us a look: use_sim_time set at run time takes effect
+        within that)."""
         clock = self.node.get_clock()      # a node's clock is ROS_TIME: system time unless ...
-        if clock.clock_type != ClockType.ROS_TIME or clock.ros_time_is_active:
+        now = time.monotonic()
+        if now >= self._clock_kind_due:
+            self._sim_time = clock.clock_type != ClockType.ROS_TIME or clock.ros_time_is_active
+            self._clock_kind_due = now + CLOCK_KIND_CHECK_S
+        if self._sim_time:
             ns = clock.now().nanoseconds           # ... use_sim_time: the /clock topic's time
         else:
             ns = time.time_ns()
@@ -153,11 +196,12 @@ class StatePublisher:
         finished a cycle (a node with eight drive hosts publishes one message a period, not
         eight), or a period after the last one (a bus whose drives are all lost)."""
         with self._js_lock:
-            self._js_cycled.add(id(sup))
-            live = {id(s) for s in self.node.supervisors
-                    if any(slot.connected for slot in s.slots.values())}
-            if not (self._js_cycled >= live or now >= self._js_due):
-                return False
+            sups = self.node.supervisors
+            if len(sups) > 1:
+                self._js_cycled.add(id(sup))
+                live = {id(s) for s in sups if any(slot.connected for slot in s.slots.values())}
+                if not (self._js_cycled >= live or now >= self._js_due):
+                    return False
             self._js_cycled = set()
             self._js_due = now + 1.0 / self.node.bus_params['publish_rate_hz']
             return True
@@ -183,12 +227,6 @@ class StatePublisher:
                     [float(s.effort) for s in states]
                     if all(s.effort is not None for s in states) else None)
             self.joint_pub.publish(cdr.encode(sec, nanosec, *last[2:]))
-
-    def _status_key(self, h: 'DriveHandle') -> tuple:
-        """The status fields that make a new status worth sending (not the link counters)."""
-        slot = h.slot
-        return (slot.state, slot.connected, slot.not_driven, h.commands_refused,
-                h.last_refusal, h.sup.watchdog_armed(h.name), h.sup.bus.health())
 
     def _status_msg(self, h: 'DriveHandle', stamp, counters: dict[str, int]) -> DriveStatus:
         s = h.state
