@@ -14,7 +14,7 @@ import threading
 import time
 from typing import Any, Callable, Iterable
 
-from .ros_client import RosClient
+from .ros_client import RosClient, command_qos
 from .errors import EXIT_NOT_FOUND, EXIT_TIMEOUT, EXIT_USAGE, CliError
 
 logger = logging.getLogger(__name__)
@@ -252,7 +252,7 @@ class Graph:
     def publisher(self, msg_type, topic: str):
         pubs = self.ros._pubs
         if topic not in pubs:
-            pubs[topic] = self.node.create_publisher(msg_type, topic, 10)
+            pubs[topic] = self.node.create_publisher(msg_type, topic, command_qos())
         pub = pubs[topic]
         deadline = time.monotonic() + self.discovery_timeout_s
         while pub.get_subscription_count() == 0:

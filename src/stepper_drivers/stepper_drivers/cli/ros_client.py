@@ -27,6 +27,12 @@ def wait_for(cond: Callable[[], Any], timeout_s: float = 5.0, what: str = 'condi
         time.sleep(period_s)
 
 
+def command_qos():
+    """What the clients publish commands with: KEEP_ALL, RELIABLE, as the nodes subscribe."""
+    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+    return QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE)
+
+
 class RosClient:
     """One rclpy node with a background executor (stepperctl, tests, demo, benchmarks)."""
 
@@ -107,8 +113,11 @@ class RosClient:
         return task.result()
 
     def publish(self, msg_type, topic: str, msg) -> None:
+        """Publish msg once a subscriber is there. KEEP_ALL, RELIABLE (the nodes' command QoS):
+        a reliable writer that keeps the last 10 drops the oldest one not yet acknowledged, so
+        one of 200 commands published back to back on a loaded machine never arrived."""
         if topic not in self._pubs:
-            self._pubs[topic] = self.node.create_publisher(msg_type, topic, 10)
+            self._pubs[topic] = self.node.create_publisher(msg_type, topic, command_qos())
             wait_for(lambda: self._pubs[topic].get_subscription_count() > 0, 10.0,
                      f'a subscriber on {topic}')
         self._pubs[topic].publish(msg)
