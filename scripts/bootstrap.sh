@@ -192,14 +192,21 @@ if [ "$(cat "$STAMP_DIR/interfaces" 2>/dev/null)" != "$interfaces" ]; then
     done
     rm -f "$STAMP_DIR/build"
 fi
-newest=$(find src config colcon.meta -newer "$STAMP_DIR/build" -not -path '*/__pycache__*' \
-    -not -name '*.pyc' -print -quit 2>/dev/null || echo changed)
-if [ ! -f "$STAMP_DIR/build" ] || [ -n "$newest" ] || [ ! -f install/local_setup.bash ]; then
+# A change is a file newer than the last build, or a file added or removed (the list's hash):
+# not a directory's time, which Python's __pycache__ moves (without PYTHONDONTWRITEBYTECODE,
+# importing the symlinked packages writes it in src/).
+newest=$(find src config colcon.meta -type f -newer "$STAMP_DIR/build" \
+    -not -path '*/__pycache__/*' -not -name '*.pyc' -print -quit 2>/dev/null || echo changed)
+sources=$(find src config colcon.meta -type f -not -path '*/__pycache__/*' -not -name '*.pyc' \
+    | LC_ALL=C sort | sha256sum | cut -c1-16)
+if [ ! -f "$STAMP_DIR/build" ] || [ -n "$newest" ] || [ ! -f install/local_setup.bash ] \
+        || [ "$(cat "$STAMP_DIR/sources" 2>/dev/null)" != "$sources" ]; then
     log "colcon build"
     args=(--symlink-install --event-handlers console_direct- console_stderr+)
     [ ${#cmake_args[@]} -eq 0 ] || args+=(--cmake-args "${cmake_args[@]}")
     colcon build "${args[@]}" >&2
     touch "$STAMP_DIR/build"
     echo "$interfaces" > "$STAMP_DIR/interfaces"
+    echo "$sources" > "$STAMP_DIR/sources"
 fi
 log "ready"
