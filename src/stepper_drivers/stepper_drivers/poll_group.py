@@ -127,7 +127,6 @@ class PollGroup:
         self._t0 = t0
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
-        self.ticks = 0              # grid points at which it lent a link
         self.failure = ''
 
     def start(self) -> None:
@@ -176,7 +175,6 @@ class PollGroup:
                     loans.append(_Loan(sup, polls))
             if not loans:
                 return
-            self.ticks += 1
             waiting = {loan.fd: loan for loan in loans if loan.send()}
             deadline = now + min(REPLY_WAIT_PERIODS * period,
                                  min(getattr(loan.bus, 'timeout_s', period) for loan in loans))

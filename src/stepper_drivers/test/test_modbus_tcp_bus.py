@@ -1,6 +1,7 @@
 """ModbusTcpBus against a real pymodbus 3.16.1 TCP server on 127.0.0.1 (no mocks)."""
 
 import asyncio
+import contextlib
 import socket
 import threading
 import time
@@ -21,6 +22,21 @@ def _free_port():
     with socket.socket() as s:
         s.bind(('127.0.0.1', 0))
         return s.getsockname()[1]
+
+
+@contextlib.contextmanager
+def _silent_server_bus(timeout_s: float):
+    """An open bus to a server that accepts the connection and never answers: (bus, port)."""
+    with socket.socket() as silent:
+        silent.bind(('127.0.0.1', 0))
+        silent.listen()
+        port = silent.getsockname()[1]
+        b = ModbusTcpBus('127.0.0.1', port, timeout_s=timeout_s)
+        b.open()
+        try:
+            yield b, port
+        finally:
+            b.close()
 
 
 class Server:
@@ -152,12 +168,7 @@ def test_connection_refused_names_host_port_and_timeout():
 
 
 def test_silent_server_times_out_then_reopens():
-    with socket.socket() as silent:
-        silent.bind(('127.0.0.1', 0))
-        silent.listen()
-        port = silent.getsockname()[1]
-        b = ModbusTcpBus('127.0.0.1', port, timeout_s=0.1)
-        b.open()
+    with _silent_server_bus(0.1) as (b, port):
         with pytest.raises(LinkError, match=rf'127.0.0.1:{port} unit 1: FC03 read 1 at 1001: '
                                             r'no answer within 0.1 s'):
             b.read_holding_registers(1, 1001, 1)
@@ -326,19 +337,11 @@ def test_an_untaken_request_without_a_reply_is_a_link_error_naming_it():
     """The next request waits for it at most timeout_s from its sending, then the link is
     lost, naming the request that got no answer."""
     from stepper_drivers.protocol.modbus import FC_READ_HOLDING_REGISTERS, read_request
-    with socket.socket() as silent:
-        silent.bind(('127.0.0.1', 0))
-        silent.listen()
-        port = silent.getsockname()[1]
-        b = ModbusTcpBus('127.0.0.1', port, timeout_s=0.1)
-        b.open()
-        try:
-            b.send_request(read_request(1, FC_READ_HOLDING_REGISTERS, 1001, 21))
-            t0 = time.monotonic()
-            with pytest.raises(LinkError, match=rf'127.0.0.1:{port} unit 1: FC03 read 21 at '
-                                                r'1001: no answer within 0.1 s'):
-                b.read_holding_registers(1, 1040, 1)
-            assert time.monotonic() - t0 < 2 * 0.1      # not its timeout and then our own
-            assert b.counters()['timeouts'] == 1 and b.transactions == 1
-        finally:
-            b.close()
+    with _silent_server_bus(0.1) as (b, port):
+        b.send_request(read_request(1, FC_READ_HOLDING_REGISTERS, 1001, 21))
+        t0 = time.monotonic()
+        with pytest.raises(LinkError, match=rf'127.0.0.1:{port} unit 1: FC03 read 21 at '
+                                            r'1001: no answer within 0.1 s'):
+            b.read_holding_registers(1, 1040, 1)
+        assert time.monotonic() - t0 < 2 * 0.1      # not its timeout and then our own
+        assert b.counters()['timeouts'] == 1 and b.transactions == 1

@@ -421,7 +421,6 @@ class RemoteDrive:
         self.bootups = 0                   # boot-up frames seen (state 0)
         self.heartbeat_at: float | None = None
         self.heartbeat_state: int | None = None
-        self.tpdo_count = 0                # TxPDOs received from this node
         self.tpdo_at: float | None = None
         self.emcy: EmcyRecord | None = None   # last EMCY with a code other than 0x0000
         self.emcy_count = 0
@@ -528,7 +527,6 @@ class RemoteDrive:
         """A TxPDO of this node (its length checked by the network, configure_pdo): counted,
         timed and handed to the handler of watch_tpdos. canopen's PdoMap is not in the way: it
         decodes nothing the driver reads and locks a condition per frame that nobody waits on."""
-        self.tpdo_count += 1
         self.tpdo_at = time.monotonic()
         self.bus.extra['tpdo_rx'] += 1
         handler = self._tpdo_handler
