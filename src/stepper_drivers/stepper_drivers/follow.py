@@ -160,6 +160,9 @@ class Run:
         self._replaced_at: float | None = None
         self._jobs: list[concurrent.futures.Future] = []
         self._streams: list[concurrent.futures.Future] = []
+        # joint: when its last move of this run had gone out (written by the owner threads'
+        # jobs, read by the run thread: one dict item)
+        self._moved_t: dict[str, float] = {}
         self.final_steps = dict(start_steps)
         for point in traj.points:
             self.final_steps.update(zip(traj.joints, point.positions_steps))
@@ -290,16 +293,29 @@ class Run:
             far = self._off_goal()
             if not far:
                 return _succeeded('every joint reached its goal')
-            # (a stream still running: an interpolated axis rests between set points now and
-            # then, its 'moving' is no sign of the end)
-            if not self.tol.goal_time_s and not any(
-                    self.follower.axes[j].moving() for j in self.traj.joints) \
-                    and all(f.done() for f in self._streams):
+            if not self.tol.goal_time_s and self._standing():
                 return _aborted(GOAL_TOLERANCE_VIOLATED, '; '.join(far))
             if clock() >= deadline:
                 self._stop_axes()
                 return _aborted(GOAL_TOLERANCE_VIOLATED, '; '.join(far))
             self._cancel.wait(TICK_S)
+
+    def _standing(self) -> bool:
+        """The run is over: no job of it is left (a move that has not gone out yet; a stream
+        still running: an interpolated axis rests between set points now and then, its
+        'moving' is no sign of the end), and every joint stands still as a snapshot since its
+        last move shows (an older one is asked for: the drive is polled at once)."""
+        if not all(f.done() for f in self._jobs):
+            return False
+        for joint in self.traj.joints:
+            axis = self.follower.axes[joint]
+            _, at = axis.sample()
+            if at < self._moved_t.get(joint, -math.inf):
+                axis.sup.poll_soon(axis.drive_name)
+                return False
+            if axis.moving():
+                return False
+        return True
 
     def _still_on_the_way(self, axis: Axis, seg_t: float, target: float, start: float) -> bool:
         """The axis is short of `target` (its last move's, from `start`) by more than
@@ -335,6 +351,7 @@ class Run:
             result = axis.drive.move_to(int(round(move.target_steps)), Motion(v, a, a))
             if is_steps(result):
                 result = yield from result
+            self._moved_t[axis.joint] = clock()
             # its move's own transactions (checks, writes) before the drive runs, learned: up to
             # its motion frame where the move goes on after it (a set-point handshake)
             sent = axis.drive.motion_sent_t

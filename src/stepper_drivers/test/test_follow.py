@@ -202,3 +202,28 @@ def test_a_newer_trajectory_sends_its_first_move_at_the_take_over(rig):
     assert time.monotonic() - sent < 1.0
     assert new.done.result(3.0).status == 'succeeded'
     assert abs(true_steps(sim, 'j1')) <= 2
+
+
+
+def busy_owner_until(sup, runs, t_s):
+    """A job that keeps axis1's bus owner busy (a slow line) until `t_s` after the start of the
+    run that `runs` is given: the run's moves queue behind it."""
+    def busy():
+        wait_for(lambda: runs, 1.0, 'the run')
+        time.sleep(max(0.0, runs[0].start_t + t_s - time.monotonic()))
+
+    sup.submit('axis1', Command(COMMAND, busy, 'a slow job'))
+
+
+def test_a_last_move_that_goes_out_after_the_end_is_waited_for(rig):
+    """The bus owner is busy past the trajectory's end: at its end the axis stands where it
+    started, its move not yet sent. The run waits for the move and a snapshot since, and
+    succeeds; judged by the standstill alone, it aborted (goal tolerance) and the move ran
+    after the goal had ended."""
+    sim, sup, follower = rig
+    runs = []
+    busy_owner_until(sup, runs, 0.35)
+    runs.append(follower.follow(build(['j1'], [0.3], [[3000]], known=JOINTS)))
+    outcome = runs[0].done.result(3.0)
+    assert outcome.status == 'succeeded', outcome
+    assert true_steps(sim, 'j1') == pytest.approx(3000, abs=2)
