@@ -240,6 +240,12 @@ class Drive(abc.ABC):
     # take "enabled, no alarm" from it instead of reading it on the wire first (the bus owner
     # sets its poll period here). 0: read it on the wire before every motion.
     state_fresh_s: float = 0.0
+    # move_to while a move runs takes the new target on the way, without a stop first (CiA 402
+    # profile position with "change set immediately", controlword bit 5). The trajectory
+    # follower then gives a late axis that goes on in the same direction its next target at
+    # once: it passes its point on the way. False: a new move stops the running one first, or
+    # waits for it (until_ready_for_move); a late axis's next move waits for its arrival.
+    retargets_on_the_way: bool = False
     # time.monotonic() at which the last move_to's motion frame went out, where move_to goes on
     # after it (a CiA 402 set-point handshake waits for the acknowledge); None: at its end.
     motion_sent_t: float | None = None

@@ -15,7 +15,11 @@ a serial line). An axis whose job starts late, behind other drives' jobs on one 
 faster and arrives with the others: with the planned ramp time when its limits allow, else with
 the shortest ramp its max_acceleration allows; only when neither fits does it arrive late (the
 goal tolerance decides). A late axis's move waits for the segment before to end on its axis: a
-drive that cannot take a new target while it runs (X-MIND K) would stop short and start again.
+drive that cannot take a new target while it runs (X-MIND K) would stop short and start again,
+and one that turns there would cut its point. Where the drive takes a new target on the way
+(Drive.retargets_on_the_way) and the axis goes on in the same direction, it passes the point on
+its way to the next one: that move goes at once, so a late axis is not held at every point
+(each hold would add the wait to see it arrive and the move's own transactions).
 """
 
 from __future__ import annotations
@@ -259,7 +263,8 @@ class Run:
                 for move in list(waiting):
                     axis = self.follower.axes[move.joint]
                     if clock() < end_t and move.joint in before and self._still_on_the_way(
-                            axis, seg_t, previous[move.joint], before[move.joint]):
+                            axis, seg_t, previous[move.joint], before[move.joint],
+                            move.target_steps):
                         continue
                     with self.follower.submit_lock:
                         if self._replaced():
@@ -317,11 +322,16 @@ class Run:
                 return False
         return True
 
-    def _still_on_the_way(self, axis: Axis, seg_t: float, target: float, start: float) -> bool:
+    def _still_on_the_way(self, axis: Axis, seg_t: float, target: float, start: float,
+                          next_target: float) -> bool:
         """The axis is short of `target` (its last move's, from `start`) by more than
         ARRIVED_FRACTION of that move's distance: as a snapshot since seg_t shows it moving, or,
         where the last snapshot is older, as that one was behind the plan by as much (then the
-        drive is polled at once, and the next check has a snapshot since seg_t)."""
+        drive is polled at once, and the next check has a snapshot since seg_t). Never where
+        its drive takes `next_target` on the way and that lies beyond `target` in the
+        direction of travel: the axis passes `target` on its way."""
+        if axis.drive.retargets_on_the_way and (next_target - target) * (target - start) > 0:
+            return False
         position, at = axis.sample()
         if not axis.moving():
             return False

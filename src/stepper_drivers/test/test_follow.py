@@ -215,6 +215,56 @@ def busy_owner_until(sup, runs, t_s):
     sup.submit('axis1', Command(COMMAND, busy, 'a slow job'))
 
 
+def late_first_move(sim, sup, follower, second_steps):
+    """j1 from 0 to 3000 steps by 0.3 s, then to `second_steps` by 0.6 s; its first move goes
+    out late, at 0.27 s, and the 3000 steps in the 0.03 s left would need 100 000 steps/s,
+    twice LIMITS' max_velocity: the move keeps its planned profile. Returns the run, where the
+    axis was at 0.3 s, the time (from the run's start) its second target reached the drive
+    and where the axis was then, sampled every millisecond from the simulator."""
+    drive = sim.drives['axis1']
+    runs = []
+    busy_owner_until(sup, runs, 0.27)
+    runs.append(follower.follow(build(['j1'], [0.3, 0.6], [[3000], [second_steps]],
+                                      known=JOINTS)))
+    run = runs[0]
+    deadline = run.start_t + 2.0
+    at_point_steps = None
+    for target in (3000, second_steps):
+        while drive._pp_target != target and time.monotonic() < deadline:
+            if at_point_steps is None and time.monotonic() >= run.start_t + 0.3:
+                at_point_steps = true_steps(sim, 'j1')
+            time.sleep(0.001)
+    return run, at_point_steps, time.monotonic() - run.start_t, true_steps(sim, 'j1')
+
+
+def test_a_late_axis_going_on_the_same_way_gets_its_next_target_at_its_segment(rig):
+    """The X-PLUS MT takes a monotonous new target on the way (§13 "Multi-Set-Point Mode"):
+    the late axis's second move goes out at its segment's start, within a poll and a move's
+    transactions (about four), not once the axis has arrived at its first point (it passes it
+    on the way). Held, it reached the drive at 0.57 s, and every later point of a dense
+    trajectory was as late again."""
+    sim, sup, follower = rig
+    run, at_point_steps, sent_s, _ = late_first_move(sim, sup, follower, 6000)
+    assert at_point_steps < 3000 - 0.005 * 3000, 'not late at 0.3 s: the test proves nothing'
+    assert sent_s <= 0.3 + POLL_S + 5 * TRANSACTION_S, sent_s
+    outcome = run.done.result(3.0)
+    assert outcome.status == 'succeeded', outcome
+    assert true_steps(sim, 'j1') == pytest.approx(6000, abs=2)
+
+
+def test_a_late_axis_that_turns_at_its_point_gets_there_first(rig):
+    """Back from 3000 to 0: taken on the way, the turn would cut the point (the X-PLUS MT stops
+    and restarts for a target that is not monotonous). The move waits until the axis is
+    there (within ARRIVED_FRACTION of its segment)."""
+    sim, sup, follower = rig
+    run, at_point_steps, sent_s, sent_at_steps = late_first_move(sim, sup, follower, 0)
+    assert at_point_steps < 3000 - 0.005 * 3000, 'not late at 0.3 s: the test proves nothing'
+    assert sent_at_steps >= 3000 - max(0.005 * 3000, 2), (sent_s, sent_at_steps)
+    outcome = run.done.result(3.0)
+    assert outcome.status == 'succeeded', outcome
+    assert abs(true_steps(sim, 'j1')) <= 2
+
+
 def test_a_last_move_that_goes_out_after_the_end_is_waited_for(rig):
     """The bus owner is busy past the trajectory's end: at its end the axis stands where it
     started, its move not yet sent. The run waits for the move and a snapshot since, and

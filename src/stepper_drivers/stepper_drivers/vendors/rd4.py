@@ -88,6 +88,10 @@ _RAW_REGISTERS = RawRegisterRules(
 class Rd4Drive(Drive):
     """One RD4 unit on a Modbus RTU line (node ID = parameter `node_id`)."""
 
+    # §8.1.1 "Position override function": a new Target position with a Start while the unit
+    # is still reaching the last one
+    retargets_on_the_way = True
+
     def __init__(self, bus: Bus, name: str, params: Mapping[str, Any]):
         params = VENDOR.with_defaults(params)
         super().__init__(bus, name, params)

@@ -201,6 +201,8 @@ class VectorStepDrive(Cia402Drive, InterpolatingDrive):
     """One Vector Step on a CAN bus (node-ID = parameter `node_id`)."""
 
     state_from_cache = True      # read_state: the TxPDO values (SDO only for faults, warnings)
+    # every PP move sets bit 5, "1 = Cambia setpoint immediatamente" ([CONTROLWORD])
+    retargets_on_the_way = True
     CW_SW_DELAY_S = 0.002        # first statusword check after a controlword (TxPDO on change)
     STATUSWORD_POLL_S = POLL_S   # the statusword comes by TxPDO: the receive thread records it
     ENABLE_TIMEOUT_S = 1.0

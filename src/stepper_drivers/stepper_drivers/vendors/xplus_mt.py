@@ -74,6 +74,9 @@ class XplusMtDrive(Cia402Drive):
 
     start_stop_steps_s = float(xm.START_STOP_MAX_HZ)     # §13 "Motion Profiles"
     min_velocity_steps_s = 1.0        # PROFILE_VELOCITY (1044) in whole Hz, 0 refused
+    # §13 "Multi-Set-Point Mode" (bit 5 set by every move): a monotonous new target is taken
+    # "without intermediate stops"; a reversing one stops and restarts
+    retargets_on_the_way = True
     CW_SW_DELAY_S = 0.012      # §13 "Register 1001" note: >= 12 ms before checking the SW
     ENABLE_TIMEOUT_S = 1.5     # the 3 steps + HV "at least 500 ms before" transition 3 (§12)
     STATUSWORD_READ_IS_TRANSACTION = True     # every statusword read is an FC03 of 1001
