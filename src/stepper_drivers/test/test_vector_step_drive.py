@@ -501,6 +501,44 @@ def test_a_snapshot_waits_for_the_rest_of_a_statusword_burst(bench, monkeypatch)
     assert uploads == [(vm.RSTSFLG, vm.AEC_SUB), (vm.ERROR_REGISTER, 0)]
 
 
+def test_a_moving_position_read_by_sdo_keeps_the_time_of_its_answer(bench, monkeypatch):
+    """A moving axis' TxPDO2 is late in a burst: the position is read by SDO. Its time
+    (`measured_at_s`) is the answer's, at that poll and at the next ones while no TxPDO2 brings
+    a newer one: each poll's own time would make an old position look current to the path
+    tolerance, which compares the plan at that time."""
+    d = bench.connect('axis1')
+    bench.sim.nodes['axis1'].link_cut = True           # the monitor plays node 1
+    moving, acknowledged = 0x0337, 0x1337              # bit 8 "motor moving"; then bit 12
+
+    def burst(sw, position, cobs=(0x181, 0x281, 0x381, 0x481)):
+        frames = {0x181: struct.pack('<Hb', sw, vm.MODE_PROFILE_POSITION),
+                  0x281: struct.pack('<Hi', sw, position),
+                  0x381: struct.pack('<Hi', sw, 100),
+                  0x481: struct.pack('<HHB', sw, 0, 0)}
+        bench.monitor.send(0x701, b'\x05')              # heartbeat: OPERATIONAL
+        for cob in cobs:
+            bench.monitor.send(cob, frames[cob])
+
+    burst(moving, 1000)
+    wait(lambda: snap(d).position_steps == 1000, what="the monitor's TxPDOs")
+    monkeypatch.setattr(vs, 'BURST_SLACK_S', 0.05)
+    answered = []
+
+    def upload(index, sub):
+        assert index == vm.POSITION_ACTUAL_VALUE, hex(index)
+        answered.append(time.monotonic())
+        return 1200
+    monkeypatch.setattr(d.link, 'read', upload)
+    burst(acknowledged, 1200, cobs=(0x181, 0x381, 0x481))          # TxPDO2 late
+    wait(lambda: d._values().get(vm.STATUSWORD) == acknowledged, what='the new statusword')
+    s = snap(d)
+    assert s.moving and s.position_steps == 1200 and len(answered) == 1
+    assert answered[0] <= s.measured_at_s <= time.monotonic()
+    bench.monitor.send(0x701, b'\x05')
+    again = snap(d)
+    assert again.position_steps == 1200 and again.measured_at_s == s.measured_at_s
+
+
 def test_the_state_machine_reads_the_statusword_of_txpdo1_not_of_an_overtaken_txpdo(bench):
     """Every TxPDO carries the statusword, and TxPDO1 has the node's highest priority: on a busy
     bus (or with several transmit buffers in the drive) the TxPDO1 of a new state overtakes the

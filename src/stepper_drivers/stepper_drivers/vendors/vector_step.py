@@ -255,7 +255,8 @@ class VectorStepDrive(Cia402Drive, InterpolatingDrive):
         self._statusword_seen = (0, 0.0)             # (newest TxPDO statusword, when it came)
         self._position_cob = vm.PDO_COB_BASES_TX[POSITION_TPDO - 1] + self.node_id
         self._state_cob = vm.PDO_COB_BASES_TX[0] + self.node_id      # TxPDO1
-        self._position_rx: tuple[float, int] | None = None   # (reception, position): last TxPDO2
+        # (reception, position): the last TxPDO2, or the SDO read of a late one
+        self._position_rx: tuple[float, int] | None = None
         self._tpdo_entries: dict[int, tuple] = {}     # COB-ID: what that TxPDO maps
         self._tpdo_layouts: dict[int, tuple] = {}     # COB-ID: (struct, indexes) to store it
         self._sdo_read: set[int] = set()  # TxPDOs whose objects _wait_for_burst read by SDO
@@ -574,9 +575,11 @@ class VectorStepDrive(Cia402Drive, InterpolatingDrive):
                         # (an older upload written over them would stay until the next change)
                         if self._pdo_statusword.get(cob) != newest:
                             values[index] = value
+                            if index == vm.POSITION_ACTUAL_VALUE:
+                                # true when its answer came, not at every later poll
+                                self._position_rx = (time.monotonic(), int(value))
                 if self._statusword_seen[0] == newest and self._pdo_statusword.get(cob) != newest:
                     self._sdo_read.add(cob)   # its frames of older states are older than this
-            self._position_rx = None          # the position is the SDO's: current
 
     def _seed(self) -> Steps[None]:
         """Current values by SDO, so the cache is right before the first TxPDO arrives."""
