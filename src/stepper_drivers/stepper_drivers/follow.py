@@ -416,7 +416,8 @@ class Run:
                     self._stop_axes()
                     return _aborted(PATH_TOLERANCE_VIOLATED,
                                     f'{joint}: {err:+.0f} steps from the path (path tolerance '
-                                    f'{tol:g} steps) at {now - self.start_t:.3f} s')
+                                    f'{tol:g} steps) at {now - self.start_t:.3f} s, by its '
+                                    f'position of {min(at, now) - self.start_t:.3f} s')
         for joint, tol in self.tol.path_velocity_steps_s.items():
             if tol > 0 and joint in self.follower.axes:
                 axis = self.follower.axes[joint]
