@@ -204,7 +204,6 @@ def test_a_newer_trajectory_sends_its_first_move_at_the_take_over(rig):
     assert abs(true_steps(sim, 'j1')) <= 2
 
 
-
 def busy_owner_until(sup, runs, t_s):
     """A job that keeps axis1's bus owner busy (a slow line) until `t_s` after the start of the
     run that `runs` is given: the run's moves queue behind it."""

@@ -116,6 +116,15 @@ def snap(drive):
     return complete(drive.read_state())
 
 
+def txpdo_frames(sw, position, mode=vm.MODE_PROFILE_POSITION, velocity=0, rstsflg=0,
+                 node_id=1):
+    """The four TxPDOs (DRIVER_TPDOS) a node sends for statusword `sw`: {COB-ID: data}."""
+    return {0x180 + node_id: struct.pack('<Hb', sw, mode),
+            0x280 + node_id: struct.pack('<Hi', sw, position),
+            0x380 + node_id: struct.pack('<Hi', sw, velocity),
+            0x480 + node_id: struct.pack('<HHB', sw, rstsflg, 0)}
+
+
 def settle(drive, timeout_s=5.0):
     return wait(lambda: (lambda s: s if not s.moving else None)(snap(drive)), timeout_s,
                 'standstill')
@@ -441,10 +450,7 @@ def test_a_snapshot_waits_for_the_rest_of_a_statusword_burst(bench, monkeypatch)
     moving, attained, other = 0x0337, 0x1637, 0x0637
 
     def burst(sw, position, velocity, rstsflg, cobs=(0x181, 0x281, 0x381, 0x481)):
-        frames = {0x181: struct.pack('<Hb', sw, vm.MODE_HOMING),
-                  0x281: struct.pack('<Hi', sw, position),
-                  0x381: struct.pack('<Hi', sw, velocity),
-                  0x481: struct.pack('<HHB', sw, rstsflg, 0)}
+        frames = txpdo_frames(sw, position, vm.MODE_HOMING, velocity, rstsflg)
         bench.monitor.send(0x701, b'\x05')              # heartbeat: OPERATIONAL
         for cob in cobs:
             bench.monitor.send(cob, frames[cob])
@@ -511,10 +517,7 @@ def test_a_moving_position_read_by_sdo_keeps_the_time_of_its_answer(bench, monke
     moving, acknowledged = 0x0337, 0x1337              # bit 8 "motor moving"; then bit 12
 
     def burst(sw, position, cobs=(0x181, 0x281, 0x381, 0x481)):
-        frames = {0x181: struct.pack('<Hb', sw, vm.MODE_PROFILE_POSITION),
-                  0x281: struct.pack('<Hi', sw, position),
-                  0x381: struct.pack('<Hi', sw, 100),
-                  0x481: struct.pack('<HHB', sw, 0, 0)}
+        frames = txpdo_frames(sw, position, velocity=100)
         bench.monitor.send(0x701, b'\x05')              # heartbeat: OPERATIONAL
         for cob in cobs:
             bench.monitor.send(cob, frames[cob])
@@ -548,19 +551,13 @@ def test_the_state_machine_reads_the_statusword_of_txpdo1_not_of_an_overtaken_tx
     bench.sim.nodes['axis1'].link_cut = True           # the monitor plays node 1
     ready, enabled = 0x0631, 0x0637
 
-    def frames(sw, position):
-        return {0x181: struct.pack('<Hb', sw, vm.MODE_PROFILE_POSITION),
-                0x281: struct.pack('<Hi', sw, position),
-                0x381: struct.pack('<Hi', sw, 0),
-                0x481: struct.pack('<HHB', sw, 0, 0)}
-
     bench.monitor.send(0x701, b'\x05')
-    for cob, data in frames(ready, 100).items():
+    for cob, data in txpdo_frames(ready, 100).items():
         bench.monitor.send(cob, data)
     wait(lambda: snap(d).position_steps == 100, what="the monitor's TxPDOs")
-    bench.monitor.send(0x181, frames(enabled, 100)[0x181])     # the new state first
-    for cob in (0x281, 0x381, 0x481):                         # then the old burst's rest
-        bench.monitor.send(cob, frames(ready, 101)[cob])
+    bench.monitor.send(0x181, txpdo_frames(enabled, 100)[0x181])     # the new state first
+    for cob in (0x281, 0x381, 0x481):                               # then the old burst's rest
+        bench.monitor.send(cob, txpdo_frames(ready, 101)[cob])
     wait(lambda: d._values().get(vm.POSITION_ACTUAL_VALUE) == 101, what='the late TxPDO2')
     wait(lambda: d._pdo_statusword.get(0x481) == ready, what='the late TxPDO4')
     assert d._read_statusword() == enabled
@@ -774,14 +771,9 @@ def test_a_snapshot_is_coherent_on_a_10_kbit_bus(tmp_path):
             node.link_cut = True
         frame_s = 135 / 10000           # 8-byte frame, worst-case stuffing, at 10 kbit/s
 
-        def frames(node_id, sw, position, rstsflg):
-            return {0x180 + node_id: struct.pack('<Hb', sw, vm.MODE_PROFILE_POSITION),
-                    0x280 + node_id: struct.pack('<Hi', sw, position),
-                    0x380 + node_id: struct.pack('<Hi', sw, 0),
-                    0x480 + node_id: struct.pack('<HHB', sw, rstsflg, 0)}
-
         def burst(sw, position, rstsflg, paced):
-            out = {**frames(1, sw, position, rstsflg), **frames(2, sw, -position, 0)}
+            out = {**txpdo_frames(sw, position, rstsflg=rstsflg),
+                   **txpdo_frames(sw, -position, node_id=2)}
             bench.monitor.send(0x701, b'\x05')
             for k, cob in enumerate(sorted(out)):                # CAN arbitration order
                 if paced and k:
