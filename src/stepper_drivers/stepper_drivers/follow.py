@@ -408,7 +408,8 @@ class Run:
                 # the plan at the time the position was true, not now: a position up to a poll
                 # period old (and a Vector Step's TxPDO inhibit time) is no path error
                 position, at = self.follower.axes[joint].sample()
-                desired = self.desired_steps(min(at, now)).get(joint)
+                at = min(at, now)
+                desired = self.desired_steps(at).get(joint)
                 if desired is None:
                     continue
                 err = position - desired
@@ -417,7 +418,7 @@ class Run:
                     return _aborted(PATH_TOLERANCE_VIOLATED,
                                     f'{joint}: {err:+.0f} steps from the path (path tolerance '
                                     f'{tol:g} steps) at {now - self.start_t:.3f} s, by its '
-                                    f'position of {min(at, now) - self.start_t:.3f} s')
+                                    f'position of {at - self.start_t:.3f} s')
         for joint, tol in self.tol.path_velocity_steps_s.items():
             if tol > 0 and joint in self.follower.axes:
                 axis = self.follower.axes[joint]
