@@ -1,11 +1,14 @@
 """Who may command a drive (docs/security.md): the shipped params files refuse raw register
-writes, and a node asked for SROS2 where the middleware cannot provide it ends at start-up with
-one line and exit code 2 instead of running unsecured or failing inside the rmw."""
+writes, a node asked for SROS2 where the middleware cannot provide it ends at start-up with
+one line and exit code 2 instead of running unsecured or failing inside the rmw, and the page's
+SROS2 policy and commands are what the sros2 tools take and the node they secure."""
 
 import pathlib
+import re
+import xml.etree.ElementTree as ET
 
 import pytest
-from rosharness import CONFIG, DriveBench, executable, free_port
+from rosharness import CONFIG, DriveBench, executable, free_port, ROOT
 from stepper_drivers import dds_security
 from stepper_drivers.params import DRIVE_PARAMS
 from stepper_drivers.vendor_table import KEYS
@@ -130,3 +133,123 @@ def test_a_node_asked_for_sros2_without_security_plugins_ends_with_one_line(
     lines = p.output().strip().splitlines()
     assert code == 2, f'{exe} exited with {code}:\n{p.output()}'
     assert lines == [f'{exe}: {NO_PLUGINS}'], lines
+
+
+# ------------------------------------------------------------------------------ the page's policy
+SECURITY_DOC = ROOT / 'docs' / 'security.md'
+FENCE = re.compile(r'^ *```(\w*)\n(.*?)^ *```$', re.M | re.S)
+
+
+def doc_blocks(lang: str) -> list[str]:
+    """The fenced code blocks of docs/security.md in that language, in page order."""
+    return [body for kind, body in FENCE.findall(SECURITY_DOC.read_text()) if kind == lang]
+
+
+def page_policy() -> ET.Element:
+    """The policy of docs/security.md as sros2 holds it: lxml's etree.parse keeps comments and
+    processing instructions as children of the elements they are in, so they are here too."""
+    (policy,) = [b for b in doc_blocks('xml') if '<policy ' in b]
+    parser = ET.XMLParser(target=ET.TreeBuilder(insert_comments=True, insert_pis=True))
+    return ET.fromstring(policy.encode(), parser=parser)
+
+
+def _shown(child: ET.Element) -> str:
+    if child.tag is ET.Comment:
+        return f'the comment <!--{child.text}-->'
+    if child.tag is ET.ProcessingInstruction:
+        return f'the processing instruction <?{child.text}?>'
+    attributes = ''.join(f' {k}="{v}"' for k, v in child.attrib.items())
+    return f'<{child.tag}{attributes}>'
+
+
+def policy_walk_errors(policy: ET.Element) -> list[str]:
+    """What sros2 0.13 trips over in a policy. generate_artifacts walks `for enclave in
+    policy.find('enclaves')` and makes an enclave of `enclave.get('path')` for every child: a
+    comment there is an enclave without a path ("failed to validate namespace"). Each enclave's
+    <profiles> holds <profile ns=... node=...> and nothing else either."""
+    errors = []
+    if policy.tag != 'policy' or policy.get('version') != '0.2.0':
+        errors.append(f'the root is {_shown(policy)}, not <policy version="0.2.0">')
+    enclaves = policy.find('enclaves')
+    if enclaves is None:
+        return [*errors, 'no <enclaves>']
+    for enclave in enclaves:
+        if enclave.tag != 'enclave' or not enclave.get('path', '').startswith('/'):
+            errors.append(f'<enclaves> holds {_shown(enclave)}, not an <enclave path="/...">')
+            continue
+        profiles = enclave.findall('profiles')
+        if len(profiles) != 1:
+            errors.append(f'{_shown(enclave)} has {len(profiles)} <profiles>, not one')
+        for profile in (p for ps in profiles for p in ps):
+            if profile.tag != 'profile' or not (profile.get('ns') and profile.get('node')):
+                errors.append(f'<profiles> of {_shown(enclave)} holds {_shown(profile)}, not a '
+                              '<profile ns="..." node="...">')
+    return errors
+
+
+def test_generate_artifacts_finds_an_enclave_path_in_every_child_of_enclaves():
+    policy = page_policy()
+    errors = policy_walk_errors(policy)
+    assert not errors, '\n'.join(errors)
+    # the identities generate_artifacts creates, in its order: the enclaves of steps 1 and 3
+    identities = [enclave.get('path') for enclave in policy.find('enclaves')]
+    text = SECURITY_DOC.read_text()
+    created = re.findall(r'ros2 security create_enclave \S+ (\S+)', text)
+    (loop,) = re.findall(r'^for e in (.*); do\n +ros2 security create_permission ', text, re.M)
+    assert identities == created == loop.split()
+
+
+def test_the_policy_walk_sees_a_comment_among_the_enclaves():
+    parser = ET.XMLParser(target=ET.TreeBuilder(insert_comments=True, insert_pis=True))
+    policy = ET.fromstring(
+        '<policy version="0.2.0"><enclaves><!-- the driver -->'
+        '<enclave path="/a"><!-- inside: not walked --><profiles><!-- nor here -->'
+        '<profile ns="/" node="n"/><profile node="m"/></profiles></enclave>'
+        '</enclaves></policy>', parser=parser)
+    assert policy_walk_errors(policy) == [
+        '<enclaves> holds the comment <!-- the driver -->, not an <enclave path="/...">',
+        '<profiles> of <enclave path="/a"> holds the comment <!-- nor here -->, not a '
+        '<profile ns="..." node="...">',
+        '<profiles> of <enclave path="/a"> holds <profile node="m">, not a '
+        '<profile ns="..." node="...">']
+
+
+def test_every_signing_step_exports_the_same_domain_id():
+    """create_keystore signs the domain ID into the governance, create_enclave,
+    create_permission and generate_artifacts into the permissions, each from the ROS_DOMAIN_ID
+    of its own shell; the secured nodes run in the domain the files are made for."""
+    steps = [b for b in doc_blocks('bash')
+             if re.search(r'ros2 security (create_|generate_artifacts)|ROS_SECURITY_ENABLE', b)]
+    assert len(steps) >= 3
+    domains = {re.search(r'ros2 security \w+|ros2 run \w+ \w+', b)[0]:
+               re.findall(r'^export ROS_DOMAIN_ID=(\d+)\b', b, re.M) for b in steps}
+    assert all(len(d) == 1 for d in domains.values()), f'export ROS_DOMAIN_ID: {domains}'
+    assert len({d for (d,) in domains.values()}) == 1, domains
+
+
+def test_the_run_example_starts_the_node_and_drives_the_policy_is_made_for():
+    (run,) = [b for b in doc_blocks('bash') if '--enclave' in b]
+    params_file = re.search(r'rd4_node --ros-args --params-file (\S+)', run)[1]
+    enclave = re.search(r'--enclave (\S+)', run)[1]
+    assert params_file.startswith('config/') and (ROOT / params_file).is_file(), params_file
+    (node_name, settings), = yaml.safe_load((ROOT / params_file).read_text()).items()
+    drives = set(settings['ros__parameters']['drives'])
+    enclaves = {e.get('path'): e for e in page_policy().find('enclaves')
+                if e.tag == 'enclave'}
+    assert {e for b in doc_blocks('bash')
+            for e in re.findall(r'ROS_SECURITY_ENCLAVE_OVERRIDE=(\S+)', b)} <= set(enclaves)
+    (profile,) = enclaves[enclave].iter('profile')
+    assert (profile.get('ns'), profile.get('node')) == ('/', node_name)
+    for path, element in enclaves.items():
+        # ~/<drive>/<name> in the node's profile, /<node>/<drive>/<name> in the others
+        relative = []
+        for name in (n.text for n in element.iter() if n.tag in ('topic', 'service', 'action')):
+            if name.startswith('~/'):
+                relative.append(name[2:])
+            elif name.count('/') > 1:
+                assert name.startswith(f'/{node_name}/'), (path, name, params_file)
+                relative.append(name[len(node_name) + 2:])
+        used = {name.split('/')[0] for name in relative if '/' in name}
+        assert used <= drives, (path, used, params_file)
+        if path == enclave:
+            assert used == drives, (path, used, params_file)
