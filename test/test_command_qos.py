@@ -60,3 +60,63 @@ def test_command_topics_follow_the_nodes_remapping_and_name(ros):
                 '/joint_command'} <= theirs, theirs
     finally:
         node.destroy_node()
+
+
+@pytest.mark.parametrize('key', KEYS)
+def test_every_command_callback_takes_the_samples_message_info(ros, key):
+    """rclpy passes a sample's MessageInfo (its DDS source timestamp) only to a callback that
+    takes two arguments: without it a command's age cannot be judged."""
+    from rclpy.subscription import Subscription
+    node = make_node(key)
+    try:
+        for s in node.cmd_node.subscriptions:
+            assert s._callback_type is Subscription.CallbackType.WithMessageInfo, s.topic_name
+    finally:
+        node.destroy_node()
+
+
+def test_a_command_is_judged_by_the_age_of_its_sample(ros):
+    """Through the subscriptions' own callbacks, with the MessageInfo rclpy would pass: a
+    velocity older than command_timeout_s (0.5 s in config/xplus_mt.yaml) and a position older
+    than position_command_max_age_s are refused, naming the age and the parameter; a velocity 0
+    is not judged by its age; a stamp ahead of this host's clock by more than the bound is
+    refused as clocks that disagree. (The drive is not connected: a command that passes the age
+    check is refused for that.)"""
+    import time
+    from sensor_msgs.msg import JointState
+    from std_msgs.msg import Float64
+    node = make_node('xplus_mt', '-p', 'position_command_max_age_s:=0.2')
+    try:
+        subs = {s.topic_name: s for s in node.cmd_node.subscriptions}
+        h = node.handles['axis1']
+        joint = h.cfg.joint_name
+
+        def info(age_s):
+            return {'source_timestamp': time.time_ns() - round(age_s * 1e9),
+                    'received_timestamp': time.time_ns()}
+
+        def refusal(topic, msg, age_s):
+            before = h.commands_refused
+            subs[topic].callback(msg, info(age_s))
+            assert h.commands_refused == before + 1
+            return h.last_refusal
+
+        vel, pos = '/xplus_mt_node/axis1/velocity_command', '/xplus_mt_node/axis1/position_command'
+        why = refusal(vel, Float64(data=1.0), 0.8)
+        assert 'published 0.8' in why and 'command_timeout_s (0.5 s)' in why, why
+        assert 'DISCONNECTED' in refusal(vel, Float64(data=1.0), 0.3)
+        assert 'DISCONNECTED' in refusal(vel, Float64(data=0.0), 5.0)     # a stop: any age
+        why = refusal(pos, Float64(data=1.0), 0.3)
+        assert 'published 0.3' in why and 'position_command_max_age_s (0.2 s)' in why, why
+        assert 'DISCONNECTED' in refusal(pos, Float64(data=1.0), 0.1)
+        why = refusal(vel, Float64(data=1.0), -0.8)
+        assert 'ahead of the clock of this host' in why and 'command_timeout_s' in why, why
+        js = JointState(name=[joint], velocity=[1.0])
+        why = refusal('/joint_command', js, 0.8)
+        assert 'stale command' in why and 'command_timeout_s' in why, why
+        js = JointState(name=[joint], position=[1.0])
+        why = refusal('/joint_command', js, 0.3)
+        assert 'stale command' in why and 'position_command_max_age_s' in why, why
+        assert 'DISCONNECTED' in refusal('/joint_command', js, 0.0)
+    finally:
+        node.destroy_node()

@@ -7,6 +7,8 @@ modules) and judges by the simulator's true position, not by what the node repor
 - velocity commands from several publishers, each ending with 0.0, leave the drive stopped
   (the watchdog is set far out, so it cannot be what stops it);
 - a stop of one drive is answered while another drive of the bus runs a long operation;
+- commands published while the node was stalled (SIGSTOP), which reach it late, move nothing
+  after its watchdog's stop;
 - the node SIGKILLed mid-run: drives with a drive-side watchdog stop by themselves;
 - a bus owner that fails (a bug, injected by test/fault_site) stops its drives and ends the node.
 """
@@ -138,6 +140,58 @@ def test_velocity_commands_from_several_publishers_ending_with_zero_leave_it_sto
     st = bench.status('axis1', lambda m: not m.moving, what='stopped')
     assert not st.moving
     assert time.monotonic() - t_last < 60.0   # far inside command_timeout_s
+
+
+def test_commands_that_reach_a_stalled_node_late_move_nothing(procs, ros, tmp_path):
+    """The node stalls (SIGSTOP) while axis1 runs from a velocity stream; the stream goes on
+    for STREAM_S of the stall, and a position_command for axis2 is published in it. At the
+    resume the node reads them all, each older than its bound: the velocities than
+    command_timeout_s, the position than position_command_max_age_s. The watchdog's deadline
+    has passed, so axis1 stops at once, as if no command had come in the stall; axis2 stays
+    where it stood. X-MIND K: no drive-side watchdog, so only the node can stop the axis."""
+    vendor, velocity, rate_hz = 'xmind_k', 3.0, 10.0
+    bench = make_bench(vendor, procs, ros, tmp_path)
+    timeout_s, max_age_s, stall_s, stream_s = 0.5, 0.5, 2.0, 1.0
+    assert bench.set_params(('command_timeout_s', timeout_s),
+                            ('position_command_max_age_s', max_age_s))[0].successful
+    bench.enable('axis1')
+    bench.enable('axis2')
+    bench.command('axis2', 'position_command', 0.0)     # a publisher matched before the stall
+    axis2_steps = bench.fresh_true_steps('axis2')
+    track = Track(bench.ros, bench.true_topic('axis1'))
+    bench.command('axis1', 'velocity_command', velocity)
+    bench.status('axis1', lambda m: m.moving and m.watchdog_armed, what='axis1 running')
+    refused = bench.status('axis1').commands_refused
+    bench.node.proc.send_signal(signal.SIGSTOP)
+    t_stop = time.monotonic()
+    try:
+        while time.monotonic() - t_stop < stream_s:          # the stream goes on in the stall
+            bench.command('axis1', 'velocity_command', velocity)
+            time.sleep(1.0 / rate_hz)
+        bench.command('axis2', 'position_command', 1.0)
+        # every command is older than its bound when the node reads it
+        assert stall_s - stream_s > max(timeout_s, max_age_s)
+        time.sleep(max(0.0, t_stop + stall_s - time.monotonic()))
+    finally:
+        bench.node.proc.send_signal(signal.SIGCONT)
+    t_cont = time.monotonic()
+    # The watchdog (deadline long past) stops it at the owner's first wake-up: two poll
+    # periods at most, the string in flight, the stop ramp. A stale command taken would have
+    # run it on for command_timeout_s more.
+    bound_s = watchdog_bound_s(0.0, RATE_HZ[vendor], velocity, DECEL_RAD_S2[vendor],
+                               TRANSACTION_S[vendor]) + SIM_TICK_S[vendor]
+    assert bound_s < timeout_s
+    still_at = track.wait_still(timeout_s + 0.5, bound_s + 5.0, 'axis1 stopped')
+    assert still_at - t_cont <= bound_s, (still_at - t_cont, bound_s)
+    st = bench.status('axis1', lambda m: m.commands_refused > refused and not m.moving,
+                      what='the stale velocities refused')
+    assert 'stale command' in st.last_refusal and 'command_timeout_s' in st.last_refusal, \
+        st.last_refusal
+    st2 = bench.status('axis2', lambda m: 'stale command' in m.last_refusal,
+                       what='the stale position refused')
+    assert 'position_command_max_age_s' in st2.last_refusal, st2.last_refusal
+    assert bench.fresh_true_steps('axis2') == axis2_steps
+    assert not bench.status('axis1').watchdog_armed      # the watchdog's stop disarmed it
 
 
 # The drive's own watchdog as the shipped configs set it [s], and what the simulator adds: its

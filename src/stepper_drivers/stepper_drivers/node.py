@@ -32,6 +32,7 @@ import contextlib
 import math
 import re
 import threading
+import time
 from typing import Any, Callable
 
 import rclpy
@@ -62,6 +63,24 @@ SHUTDOWN_STOP_TIMEOUT_S = 5.0
 # final 0.0 lost leaves an axis running. Every sample reaches the callback in each publisher's
 # order; the bus owner's queue drops stream commands that a newer one replaces before they go.
 COMMAND_QOS = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE)
+
+
+# A streamed command is judged by its age: the DDS source timestamp of its sample (the
+# publisher's system clock when it published; every sample carries it, rclpy hands it to a
+# callback that takes a second argument, MessageInfo) against this host's system clock. A sample
+# can reach the node seconds after it was published: a node stalled by the machine reads its
+# socket's backlog when it resumes, and a reliable writer resends a sample it was not
+# acknowledged for after its next heartbeat.
+SOURCE_TIMESTAMP = 'source_timestamp'
+
+
+def sample_age_s(info: dict | None) -> float | None:
+    """How long ago the sample was published [s] (negative: the publisher's clock is ahead of
+    this one's); None where the middleware gives no source timestamp."""
+    stamp_ns = (info or {}).get(SOURCE_TIMESTAMP) or 0
+    if stamp_ns <= 0:
+        return None
+    return (time.time_ns() - stamp_ns) * 1e-9
 
 
 # A number in a refusal's reason (the command's value, a limit, a code), masked to tell its kind.
@@ -290,10 +309,13 @@ class DriveNode(Node):
     def _make_drive_interfaces(self, h: DriveHandle) -> None:
         ns = f'~/{h.name}/'
         self.publishing.add_drive(h, ns)
-        self._command_subscription(Float64, ns + 'position_command',
-                                   lambda m, h=h: self.command_position(h, m.data))
-        self._command_subscription(Float64, ns + 'velocity_command',
-                                   lambda m, h=h: self.command_velocity(h, m.data))
+        # two arguments: rclpy passes the sample's MessageInfo (its source timestamp)
+        self._command_subscription(
+            Float64, ns + 'position_command',
+            lambda m, info, h=h: self.command_position(h, m.data, sample_age_s(info)))
+        self._command_subscription(
+            Float64, ns + 'velocity_command',
+            lambda m, info, h=h: self.command_velocity(h, m.data, sample_age_s(info)))
         self.drive_services.add_drive(h, ns)
 
     # ------------------------------------------------------------------- owner-side callbacks
@@ -398,6 +420,21 @@ class DriveNode(Node):
         if not math.isfinite(value):
             self.refuse(h, f'{what} {value} is not a finite number')
 
+    def _check_age(self, h: DriveHandle, what: str, age_s: float | None, bound_s: float,
+                   parameter: str) -> None:
+        """Refuse a streamed command published more than bound_s before it arrived, or
+        stamped more than bound_s ahead of this host's clock (the two clocks disagree, so its
+        age cannot be told). No age (no source timestamp): taken."""
+        if age_s is None or bound_s <= 0.0:
+            return
+        if age_s > bound_s:
+            self.refuse(h, f'{what} was published {age_s:.3f} s before it arrived, more than '
+                           f'{parameter} ({bound_s:g} s): a stale command, not sent')
+        if age_s < -bound_s:
+            self.refuse(h, f'{what} is stamped {-age_s:.3f} s ahead of the clock of this host, '
+                           f'more than {parameter} ({bound_s:g} s): its age cannot be told; '
+                           'synchronise the clocks of the hosts (chrony, PTP)')
+
     def check_position(self, h: DriveHandle, what: str, position: float) -> int:
         self._check_finite(h, what, position)
         lo, hi = h.param('min_position'), h.param('max_position')
@@ -430,9 +467,14 @@ class DriveNode(Node):
             h.job_error_logged = kind
         h.slot.last_error = msg
 
-    def command_position(self, h: DriveHandle, position: float) -> None:
+    def command_position(self, h: DriveHandle, position: float,
+                         age_s: float | None = None) -> None:
+        """A position_command (or a joint_command position) published age_s ago."""
         what = 'position_command'
         try:
+            self._check_age(h, f'{what} {position}', age_s,
+                            self.bus_params['position_command_max_age_s'],
+                            'position_command_max_age_s')
             steps = self.check_position(h, what, position)
         except CommandRefused:
             return
@@ -441,9 +483,17 @@ class DriveNode(Node):
             lambda: h.drive.move_to(steps, motion), f'{what} {position}'), hand_over=True)
         fut.add_done_callback(lambda f: self._job_failed(h, f'{what} {position}', f))
 
-    def command_velocity(self, h: DriveHandle, velocity: float) -> None:
+    def command_velocity(self, h: DriveHandle, velocity: float,
+                         age_s: float | None = None) -> None:
+        """A velocity_command (or a joint_command velocity) published age_s ago. One older
+        than command_timeout_s is refused: the watchdog would have stopped the drive by then,
+        and taking it would start the drive again after that stop. A velocity 0 is taken at
+        any age: it moves nothing."""
         what = f'velocity_command {velocity}'
         try:
+            if velocity != 0.0:
+                self._check_age(h, what, age_s, self.bus_params['command_timeout_s'],
+                                'command_timeout_s')
             self._check_finite(h, 'velocity_command', velocity)
             vmax = h.param('max_velocity')
             if abs(velocity) > vmax:
@@ -459,7 +509,9 @@ class DriveNode(Node):
             lambda: h.drive.set_velocity(steps_s, motion), what, velocity), hand_over=True)
         fut.add_done_callback(lambda f: self._job_failed(h, what, f))
 
-    def on_joint_command(self, msg: JointState) -> None:
+    def on_joint_command(self, msg: JointState, info: dict) -> None:
+        """`info`: the sample's MessageInfo (rclpy passes it to a two-argument callback)."""
+        age_s = sample_age_s(info)
         n = len(msg.name)
         for field in ('position', 'velocity'):
             values = getattr(msg, field)
@@ -484,9 +536,9 @@ class DriveNode(Node):
                                  f'{sorted(self.by_joint)})', throttle_duration_sec=5.0)
                 continue
             if msg.position and not math.isnan(msg.position[i]):
-                self.command_position(h, msg.position[i])
+                self.command_position(h, msg.position[i], age_s)
             elif msg.velocity and not math.isnan(msg.velocity[i]):
-                self.command_velocity(h, msg.velocity[i])
+                self.command_velocity(h, msg.velocity[i], age_s)
 
     # --------------------------------------------------------------- waiting without a thread
     async def await_future(self, fut: concurrent.futures.Future,
@@ -544,7 +596,8 @@ class DriveNode(Node):
 
     def after_set_parameters(self, params: list[Parameter]) -> None:
         for p in params:
-            if p.name in ('publish_rate_hz', 'command_timeout_s', 'status_rate_hz'):
+            if p.name in ('publish_rate_hz', 'command_timeout_s', 'status_rate_hz',
+                          'position_command_max_age_s'):
                 self.bus_params[p.name] = p.value     # the supervisors read it live
             self.log.info(f'parameter {p.name} := {p.value}')
 

@@ -189,7 +189,11 @@ BUS_PARAMS = (
       '[Hz]',
       0.1, 1000.0, read_only=False),
     P('command_timeout_s', 0.5, 'velocity watchdog: a drive running from velocity_command stops '
-      'when no new command arrives within this time [s]', 0.01, 3600.0, read_only=False),
+      'when no new command arrives within this time; a velocity published longer ago than this '
+      'when it arrives is refused [s]', 0.01, 3600.0, read_only=False),
+    P('position_command_max_age_s', 1.0, 'a position_command or joint_command position '
+      'published longer ago than this when it arrives (its DDS source timestamp against this '
+      "host's clock) is refused; 0 = not checked [s]", 0.0, 3600.0, read_only=False),
     P('reconnect_period_s', 1.0, 'first retry delay after the link drops; doubles up to 8x [s]',
       0.05, 600.0),
     P('diagnostics_rate_hz', 1.0, 'rate of /diagnostics, at most publish_rate_hz (the bus owner '
