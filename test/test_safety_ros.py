@@ -243,3 +243,35 @@ def test_a_bus_owner_that_fails_stops_its_drives_and_ends_the_node(vendor, procs
     out = bench.node.output()
     assert 'bus owner failed' in out and 'injected owner fault' in out, out[-3000:]
     assert f'{vendor}_node: ended: ' in out, out[-3000:]
+
+
+@pytest.mark.parametrize('vendor', ['xmind_k', 'xplus_mt'])
+def test_a_service_whose_job_runs_past_the_job_timeout_gets_its_result(
+        vendor, procs, ros, tmp_path):
+    """JOB_TIMEOUT_S drops a service's job only while it waits: one that started is awaited to
+    its end, however long it runs, and the service answers with its result. Here (test/
+    fault_site) JOB_TIMEOUT_S is 0.5 s and save_params runs until the test releases it."""
+    from std_srvs.srv import Trigger
+    held = tmp_path / 'held_save'
+    held.mkdir()
+    timeout_s = 0.5
+    bench = make_bench(vendor, procs, ros, tmp_path, node_env={
+        'PYTHONPATH': os.pathsep.join([str(FAULT_SITE), os.environ.get('PYTHONPATH', '')]),
+        'STEPPER_TEST_JOB_TIMEOUT_S': str(timeout_s), 'STEPPER_TEST_HELD_SAVE': str(held)})
+    client = ros.node.create_client(Trigger, f'{bench.node_ns}/axis1/save_params')
+    assert client.wait_for_service(timeout_sec=10)
+    answered = threading.Event()
+    fut = client.call_async(Trigger.Request())
+    fut.add_done_callback(lambda _f: answered.set())
+    wait_for(lambda: (held / 'started').exists(), 10.0, 'the save started')
+    assert not answered.wait(3 * timeout_s), \
+        f'answered while its job runs: {fut.result().message}'
+    (held / 'release').touch()
+    assert answered.wait(10.0), 'no answer once the save ended'
+    r = fut.result()
+    assert r.success and 'parameters saved' in r.message, r.message
+    # the bus owner lives on: another save (released at once) and the node still runs
+    r = bench.call('axis1', 'save_params', timeout_s=10.0)
+    assert r.success, r.message
+    assert bench.node.proc.poll() is None, bench.node.output()[-3000:]
+    assert 'bus owner failed' not in bench.node.output()

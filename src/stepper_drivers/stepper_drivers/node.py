@@ -541,15 +541,21 @@ class DriveNode(Node):
                 self.command_velocity(h, msg.velocity[i], age_s)
 
     # --------------------------------------------------------------- waiting without a thread
-    async def await_future(self, fut: concurrent.futures.Future,
-                           timeout_s: float | None = None):
-        """Await an owner-thread future in an async callback; a job still queued when
-        timeout_s passes is dropped (one that started is awaited: it ends by itself)."""
+    async def await_future(self, fut: concurrent.futures.Future, *,
+                           sup: BusSupervisor | None = None, timeout_s: float | None = None):
+        """Await an owner-thread future in an async callback. With timeout_s, `fut` is a job's
+        of `sup` (the bus of the job's drive, whose owner runs the time-out's timer): a job
+        still queued when timeout_s passes is dropped, and this raises; one that started
+        cannot be cancelled and is awaited to its end (its future gets its result). The timer
+        is removed once the future ended."""
         ros_fut = RosFuture(executor=self.executor)
         ros_fut.add_done_callback(lambda _f: None)    # set_result then wakes the executor
         fut.add_done_callback(lambda _f: ros_fut.set_result(None))
         if timeout_s is not None:
-            self.supervisors[0].after(timeout_s, fut.cancel)
+            if sup is None:
+                raise ValueError('await_future: timeout_s without the supervisor of the job')
+            remove_timer = sup.after(timeout_s, fut.cancel)
+            fut.add_done_callback(lambda _f: remove_timer())
         await ros_fut
         if fut.cancelled():
             raise DriveError(f'not started within {timeout_s:g} s: the drive is busy with '
@@ -575,7 +581,8 @@ class DriveNode(Node):
             h.sup.wait_poll(h.name, timeout_s, polled)
             h.sup.poll_soon(h.name)
             # no cycle within twice timeout_s (the bus shuts down: at once): not published
-            h.sup.after(2 * timeout_s, lambda fut=fut: settle(fut, False))
+            remove_timer = h.sup.after(2 * timeout_s, lambda fut=fut: settle(fut, False))
+            fut.add_done_callback(lambda _f, remove_timer=remove_timer: remove_timer())
             futs.append(fut)
         published = True
         for h, fut in zip(handles, futs):

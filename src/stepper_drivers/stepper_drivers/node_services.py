@@ -29,7 +29,8 @@ if TYPE_CHECKING:
 TARGET_TOLERANCE_STEPS = 2
 # A MoveTo result is decided on this many consecutive snapshots that agree (standstill).
 SETTLED_POLLS = 2
-# How long a service waits for its job; a job not started by then is dropped.
+# How long a service's job may wait to start: one not started by then is dropped, and the
+# service answers so; one that started is awaited to its end, however long it runs.
 JOB_TIMEOUT_S = 15.0
 
 
@@ -84,7 +85,7 @@ class DriveServices:
     async def _run_job(self, h: 'DriveHandle', command: Command) -> Any:
         return await self.node.await_future(
             h.sup.submit(h.name, command, hand_over=command.kind == JobKind.URGENT),
-            JOB_TIMEOUT_S)
+            sup=h.sup, timeout_s=JOB_TIMEOUT_S)
 
     async def _respond(self, h: 'DriveHandle', resp, work, ok_message: Callable[[Any], str]):
         """Await work(); fill a success/message response; errors become success=false."""

@@ -310,5 +310,6 @@ class TrajectoryInterface:
                 except concurrent.futures.InvalidStateError:
                     pass
         done.add_done_callback(fire)
-        self.node.supervisors[0].after(seconds, fire)
+        remove_timer = self.node.supervisors[0].after(seconds, fire)
+        wake.add_done_callback(lambda _f: remove_timer())
         await self.node.await_future(wake)

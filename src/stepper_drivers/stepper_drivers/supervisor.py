@@ -3,22 +3,39 @@
 Threads and what they own:
 - The owner thread (one per bus) makes every call into the Bus and its Drives: polls, commands,
   service transactions, reconnects, the velocity watchdog and shutdown all run there, as jobs.
-  It alone writes a slot's runtime fields (`state`, `connected`, `identity`, `polls`, ...);
-  other threads read them (one reference assignment each, so a reader sees a whole snapshot).
-- Any other thread (ROS callbacks) only calls `submit()` / `stop()` / `arm_watchdog()` /
-  `wait_poll()`, which take `_cv` for a moment, enqueue and return a `concurrent.futures.Future`.
-  A command submitted with `hand_over=True` to a sleeping owner also waits (GIL released, at
-  most HAND_OVER_MAX_S) until the owner has taken it: the GIL goes to the owner at once.
+  It writes a slot's runtime fields (`state`, `sample`, `connected`, `identity`, `polls`, the
+  running job, ...); other threads read them (one reference assignment each, so a reader sees a
+  whole snapshot). Two exceptions: while the poll group has the bus (poll_group.py, lend() to
+  give_back(), the owner waits meanwhile) its thread polls the lent drives and writes what a
+  poll writes (and a link loss found by its poll); and other threads set the request fields
+  under `_cv` (`queue`, `poll_waiters`, `velocity_deadline`/`arm_seq` by arm_watchdog(),
+  `next_poll_t` by poll_soon(), `not_driven` by refuse_drive(), `owner_polls` by give_back()).
+- Any other thread (ROS callbacks) only calls `submit()`, `arm_watchdog()`, `poll_soon()`,
+  `wait_poll()`, `after()`, `recheck()`, `refuse_drive()` and `shutdown()`, which take `_cv` for
+  a moment, enqueue and return (a `concurrent.futures.Future` for a job). A command submitted
+  with `hand_over=True` to a sleeping owner also waits (GIL released, at most
+  HAND_OVER_MAX_S) until the owner has taken it: the GIL goes to the owner at once.
+- A job's future is pending while the job waits, running from when the owner starts it
+  (`set_running_or_notify_cancel`), then done. Only a waiting job can be cancelled (its waiter's
+  time-out): the owner then skips it. A job that started runs to its end and its future gets
+  its result; nothing a future raises reaches the owner loop (`_resolve`).
 
 Order:
 - Jobs of one drive run in the order submitted, one at a time; a step-wise job (a generator, see
   drive.py) keeps the drive until it ends, while other drives' jobs and polls run between its
-  steps, so nobody waits behind a long operation.
+  steps, so nobody waits behind a long operation. A step-wise poll likewise: its next step
+  comes at the time it asked for.
 - A streaming command (kind STREAM: position or velocity) replaces a STREAM job of the same
   topic still waiting at the tail of that drive's queue: the drive gets the newest set point.
 - URGENT jobs (stop, quick stop, disable, the watchdog's stop) go before everything else: they
   drop the drive's queued motion jobs (which would move after the stop) and cut its running
   motion job short, and reach the wire after at most the one transaction already in flight.
+  A running job that an urgent one does not preempt (a save during a disable) is suspended: its
+  next step waits until the urgent job ended (`Slot.suspended`), which is stepped like any job.
+- No job holds the owner: a due poll goes before a running operation's next step (`_work_once`),
+  so while the polls fit the period no drive's poll gap exceeds its period, the longest single
+  step of a job on the bus and one transaction, whatever runs beside it; every watchdog is
+  checked on time.
 
 The velocity watchdog: `arm_watchdog()` is called when a velocity command is
 accepted, before anything is written; only a job submitted with `disarms=True` (a stop, a
@@ -40,6 +57,8 @@ from __future__ import annotations
 import collections
 import concurrent.futures
 import dataclasses
+import heapq
+import itertools
 import logging
 import math
 import os
@@ -67,6 +86,8 @@ _priority_refusal_told = False
 IDENTITY_RECHECK_S = 30.0
 IDENTITY_RECHECK_MAX_S = 300.0
 # After this many commands or steps while a poll is overdue, one poll goes first (fairness).
+# (A due poll goes before a running operation's next step anyway, unless that step has waited
+# a period for polls: `_work_once`.)
 MAX_JOBS_BEFORE_OVERDUE_POLL = 4
 # A watchdog stop that could not be sent is tried again after this long [s].
 WATCHDOG_RETRY_S = 0.1
@@ -122,7 +143,7 @@ class Job:
 
 
 class Slot:
-    """Runtime state of one drive on the bus; written by the owner thread only."""
+    """Runtime state of one drive on the bus (who writes what: the module docstring)."""
 
     def __init__(self, name: str, drive: Drive, reconnect_period_s: float):
         self.name = name
@@ -146,6 +167,9 @@ class Slot:
         self.active: Job | None = None
         self.active_steps = None     # generator of the running job
         self.wake_t = 0.0            # next step of the running job / poll / connect
+        # (job, steps, wake_t) of running jobs an urgent one did not preempt (a save during a
+        # disable): the last one goes on when the job running now ends
+        self.suspended: list[tuple[Job, Any, float]] = []
         self.poll_steps = None       # generator of a read_state() in progress
         self.poll_wake_t = 0.0
         self.next_poll_t = 0.0
@@ -174,8 +198,11 @@ class BusSupervisor:
                  name: str = 'bus',
                  on_failure: Callable[['BusSupervisor', str], None] | None = None):
         """`settings` is read live: 'publish_rate_hz', 'command_timeout_s',
-        'reconnect_period_s'. `on_cycle` runs in the owner thread after every drive was polled
-        once; `on_connected` may return a reason not to drive a drive (duplicate identity);
+        'reconnect_period_s'. `on_cycle` runs once every connected drive was polled (a cycle),
+        at once when a drive is lost (its DISCONNECTED status) and at the poll rate while none
+        is connected: in the owner thread, or in the poll group's thread when a poll of the
+        group's ends the cycle or finds the link lost (poll_group.py; the owner waits
+        meanwhile); `on_connected` may return a reason not to drive a drive (duplicate identity);
         `on_event(level, drive, text)` reports what happened ('info'/'warning'/'error');
         `on_failure(sup, why)` runs in the owner thread when an internal error ended it, after
         its drives were stopped and its bus closed (the node then ends: a bus without its owner
@@ -198,7 +225,11 @@ class BusSupervisor:
         self._shutdown_request: tuple[float, set[str]] | None = None
         self._thread = threading.Thread(target=self._run, name=f'owner {name}', daemon=True)
         self._jobs_since_poll = 0
-        self._timers: list[tuple[float, Callable[[], None]]] = []
+        # after(): a heap (under _cv) of [when, sequence number, callback or None once removed
+        # or called]; only the owner pops (its look at the first one takes no lock)
+        self._timers: list[list[Any]] = []
+        self._timer_seq = itertools.count()
+        self._removed_timers = 0    # removed timers still in the heap
         self._cycle_polled: set[str] = set()
         self._last_cycle_t = 0.0
         self._grid_t0 = clock()
@@ -257,7 +288,7 @@ class BusSupervisor:
         with self._cv:
             job.arm_seq = self.slots[drive].arm_seq
             if self._stopping:
-                fut.set_exception(Cancelled(f'{label}: the node is shutting down'))
+                _resolve(fut, exc=Cancelled(f'{label}: the node is shutting down'))
                 return fut
             if hand_over and self._idle:
                 job.taken = threading.Event()
@@ -269,7 +300,7 @@ class BusSupervisor:
                     tail = slot.queue[-1]
                     if tail.kind == STREAM and tail.topic == topic:
                         slot.queue.pop()
-                        tail.future.set_exception(Superseded(
+                        _resolve(tail.future, exc=Superseded(
                             f'{tail.label}: replaced by the newer {label} before it was sent'))
                 slot.queue.append(job)
             self._notify()
@@ -307,16 +338,34 @@ class BusSupervisor:
                 return
         callback(False)
 
-    def after(self, delay_s: float, callback: Callable[[], None]) -> None:
+    def after(self, delay_s: float, callback: Callable[[], None]) -> Callable[[], None]:
         """Call callback() from the owner thread once delay_s has passed; at once (in this
         thread) once the bus shuts down, as the owner then calls every timer still waiting:
-        what awaits one (a service, an action) ends rather than wait for ever."""
+        what awaits one (a service, an action) ends rather than wait for ever. Returns what
+        removes the timer (from any thread; nothing once it was called): a time-out whose
+        future ended is not kept until it falls due."""
         with self._cv:
             if not self._stopping:
-                self._timers.append((self.clock() + delay_s, callback))
+                entry = [self.clock() + delay_s, next(self._timer_seq), callback]
+                heapq.heappush(self._timers, entry)
                 self._notify()
-                return
+                return lambda: self._remove_timer(entry)
         callback()
+        return _nothing
+
+    def _remove_timer(self, entry: list[Any]) -> None:
+        """The timer is not called. It leaves the heap when the owner comes to it, or with the
+        other removed ones once they are most of the heap (a new list: the owner may be
+        looking at the old one)."""
+        with self._cv:
+            if entry[2] is None:
+                return
+            entry[2] = None
+            self._removed_timers += 1
+            if self._removed_timers > 16 and 2 * self._removed_timers > len(self._timers):
+                timers = [e for e in self._timers if e[2] is not None]
+                heapq.heapify(timers)
+                self._timers, self._removed_timers = timers, 0
 
     @property
     def stopping(self) -> bool:
@@ -325,16 +374,25 @@ class BusSupervisor:
         return self._stopping
 
     def shutdown(self, standstill_timeout_s: float, disable: Iterable[str] = (),
-                 join_timeout_s: float = 30.0) -> None:
+                 join_timeout_s: float = 30.0) -> bool:
         """Stop every drive, wait (bounded) for standstill, disable those named, close the bus.
-        Runs in the owner thread; this call waits for it."""
+        Runs in the owner thread; this call waits for it, at most join_timeout_s. False, and an
+        error event that says so, when the owner did not end by then (it is still in a call
+        into the bus or a drive): its drives are not stopped yet."""
         with self._cv:
             self._shutdown_request = (standstill_timeout_s, set(disable))
             self._notify()
         if self._thread.is_alive():
             self._thread.join(join_timeout_s)
+            if self._thread.is_alive():
+                self.on_event('error', self.name, (
+                    f'the bus owner did not end within {join_timeout_s:g} s of the shutdown '
+                    f'(it is still in a call into {self.bus.description or "the bus"}): its '
+                    'drives are not stopped yet, and are not if the process ends first'))
+                return False
         elif not self._closed:   # never started (tests, a node that failed to start): do it here
             self._shutdown_drives(standstill_timeout_s, set(disable))
+        return True
 
     # ------------------------------------------------------------------ the poll group
     def share_grid(self, t0: float) -> None:
@@ -465,8 +523,10 @@ class BusSupervisor:
 
         Priorities, highest first: an urgent job; a drive found not driven; a due watchdog
         stop; a poll overdue by a period once MAX_JOBS_BEFORE_OVERDUE_POLL jobs went first; the
-        next step of a running operation; the oldest waiting command; the next step of a poll;
-        a due reconnect; the longest-due poll. One pass over the slots (it runs before every
+        next step of a running operation, after the due polls unless it waited a period for
+        them (so a long operation delays no poll by more than its step in flight, nor do
+        overrunning polls stop it); the oldest waiting command; the next step of a poll; a due
+        reconnect; the longest-due poll. One pass over the slots (it runs before every
         transaction: the CPU budget, docs/benchmarks.md)."""
         self.passes += 1
         now = self.clock()
@@ -497,7 +557,9 @@ class BusSupervisor:
                         and now >= slot.watchdog_retry_t:        # the watchdog, on its own clock
                     self._watchdog_stop(slot)
                     return 0.0
-                if (slot.active is None or slot.active.polled) and now >= slot.next_poll_t:
+                # (a poll under way is not due again: its next step comes at poll_wake_t)
+                if (slot.active is None or slot.active.polled) and slot.poll_steps is None \
+                        and now >= slot.next_poll_t:
                     dues.append(slot)
                     if due is None or slot.next_poll_t < due.next_poll_t:
                         due = slot
@@ -517,6 +579,9 @@ class BusSupervisor:
             self._poll_step(due, now)
             return 0.0
         if step is not None:                      # the next step of a running operation
+            if due is not None and now < step.wake_t + self._period_s():
+                self._poll_due(dues, now)         # (ends at the step: it is due)
+                return 0.0
             self._jobs_since_poll += 1
             self._step_active(step)
             return 0.0
@@ -663,7 +728,7 @@ class BusSupervisor:
         for s in self._slot_list:
             if s.connected:
                 connected = True
-                if s.active is None or s.active.polled:
+                if (s.active is None or s.active.polled) and s.poll_steps is None:
                     poll_t = s.next_poll_t + grace if s.group_polled else s.next_poll_t
                     if poll_t < t:
                         t = poll_t
@@ -689,9 +754,19 @@ class BusSupervisor:
                 t = s.next_connect_t                # (a connect under way wakes at wake_t)
             for w, _ in s.poll_waiters:
                 t = min(t, w)
-        for w, _ in self._timers:
-            t = min(t, w)
-        return t
+        return min(t, self._next_timer_t())
+
+    def _next_timer_t(self) -> float:
+        """When the next timer falls due (math.inf: none). Removed timers at the top of the
+        heap leave it here (only the owner pops)."""
+        timers = self._timers
+        if timers and timers[0][2] is None:
+            with self._cv:
+                timers = self._timers
+                while timers and timers[0][2] is None:
+                    heapq.heappop(timers)
+                    self._removed_timers -= 1
+        return timers[0][0] if timers else math.inf
 
     # ------------------------------------------------------------------------------ jobs
     def _start_job(self, slot: Slot) -> None:
@@ -699,10 +774,10 @@ class BusSupervisor:
             job = slot.queue.popleft()
         if job.taken is not None:
             job.taken.set()
-        if job.future.done():          # cancelled by its waiter
+        if not _begin(job.future):     # cancelled by its waiter while it waited
             return
         if not slot.connected:
-            job.future.set_exception(NotConnected(
+            _resolve(job.future, exc=NotConnected(
                 f'{job.label}: drive {slot.name} is DISCONNECTED ({self.bus.description})'))
             return
         slot.active = job
@@ -737,7 +812,7 @@ class BusSupervisor:
             self._connected(slot, *result)
             return
         self._disarm(slot, job)
-        job.future.set_result(result)
+        _resolve(job.future, result)
 
     def _disarm(self, slot: Slot, job: Job) -> None:
         """A confirmed stop/position/homing disarms the watchdog, unless a velocity command
@@ -748,7 +823,11 @@ class BusSupervisor:
                     slot.velocity_deadline = None
 
     def _finish(self, slot: Slot) -> None:
-        slot.active, slot.active_steps = None, None
+        """slot.active ended: the job an urgent one suspended goes on (at its wake time)."""
+        if slot.suspended:
+            slot.active, slot.active_steps, slot.wake_t = slot.suspended.pop()
+        else:
+            slot.active, slot.active_steps = None, None
 
     def _failed(self, slot: Slot, job: Job, exc: Exception) -> None:
         if isinstance(exc, LinkError):
@@ -757,50 +836,59 @@ class BusSupervisor:
             self.on_event('error', slot.name, f'internal error in {job.label}: {exc!r}\n'
                           + traceback.format_exc())
             exc = DriveError(f'internal error in {job.label}: {exc!r}')
-        if not job.future.done():
-            job.future.set_exception(exc)
+        _resolve(job.future, exc=exc)
 
     def _run_urgent(self, job: Job) -> None:
         """Drop the drive's queued jobs that the urgent one preempts (they would move after
-        the stop), cut its running one short, and run the job now."""
+        the stop), cut its running ones short, and start the job now, as the drive's running
+        job: a step-wise one (a disable walking the state machine) is stepped like any job,
+        before anything queued. A running job it does not preempt (a save during a disable) is
+        suspended until the urgent one ended (`_finish`)."""
+        if not _begin(job.future):     # cancelled by its waiter while it waited
+            return
         slot = self.slots[job.drive]
         with self._cv:
             dropped = [j for j in slot.queue if j.preempted_by(job)]
             slot.queue = collections.deque(j for j in slot.queue if not j.preempted_by(job))
         for j in dropped:
-            j.future.set_exception(Cancelled(f'{j.label}: dropped by {job.label}'))
+            _resolve(j.future, exc=Cancelled(f'{j.label}: dropped by {job.label}'))
+        why = f'cut short by {job.label}'
+        if slot.suspended:
+            kept = [e for e in slot.suspended if not e[0].preempted_by(job)]
+            for other, steps, _ in slot.suspended:
+                if other.preempted_by(job):
+                    self._abandon(slot, other, steps, why)
+            slot.suspended = kept
         if slot.active is not None and slot.active.preempted_by(job):
-            self._cut_short(slot, f'cut short by {job.label}')
+            self._cut_short(slot, why)
         if not slot.connected:
-            job.future.set_exception(NotConnected(
+            _resolve(job.future, exc=NotConnected(
                 f'{job.label}: drive {slot.name} is DISCONNECTED ({self.bus.description})'))
             return
         if slot.active is not None:
-            # a maintenance job keeps the drive: the urgent one runs between its steps
-            self._advance_other(slot, job)
-            return
-        slot.active = job     # a step-wise one (a disable walking the state machine) goes on
-        self._advance(slot, job.fn)   # as the drive's running job, before anything queued
-
-    def _advance_other(self, slot: Slot, job: Job) -> None:
-        try:
-            result = complete(job.fn())
-        except Exception as exc:  # noqa: BLE001 - any failure of the job is its result
-            self._failed(slot, job, exc)
-            return
-        self._disarm(slot, job)
-        job.future.set_result(result)
+            slot.suspended.append((slot.active, slot.active_steps, slot.wake_t))
+            slot.active, slot.active_steps = None, None
+        slot.active = job
+        self._advance(slot, job.fn)
 
     def _cut_short(self, slot: Slot, why: str) -> None:
+        """End slot.active (Cancelled); the job it suspended, if any, goes on."""
         job, steps = slot.active, slot.active_steps
         self._finish(slot)
+        self._abandon(slot, job, steps, why)
+
+    def _cut_all(self, slot: Slot, why: str) -> None:
+        """End slot.active and every job it suspended (a link loss, shutdown)."""
+        while slot.active is not None:
+            self._cut_short(slot, why)
+
+    def _abandon(self, slot: Slot, job: Job, steps: Any, why: str) -> None:
         if steps is not None:
             try:
                 steps.close()
             except Exception as exc:  # noqa: BLE001 - a vendor finally clause failed
                 self.on_event('warning', slot.name, f'{job.label}: closing: {exc!r}')
-        if not job.future.done():
-            job.future.set_exception(Cancelled(f'{job.label}: {why}'))
+        _resolve(job.future, exc=Cancelled(f'{job.label}: {why}'))
 
     def _watchdog_stop(self, slot: Slot) -> None:
         timeout_s = self.settings['command_timeout_s']
@@ -892,10 +980,17 @@ class BusSupervisor:
             callback(ok)
 
     def _expire_waiters(self, now: float) -> None:
-        if self._timers and any(t <= now for t, _ in self._timers):
+        if self._next_timer_t() <= now:
+            due = []
             with self._cv:
-                due = [c for t, c in self._timers if t <= now]
-                self._timers = [(t, c) for t, c in self._timers if t > now]
+                timers = self._timers
+                while timers and timers[0][0] <= now:
+                    entry = heapq.heappop(timers)
+                    if entry[2] is None:
+                        self._removed_timers -= 1
+                    else:
+                        due.append(entry[2])
+                        entry[2] = None           # called: removing it does nothing
             for callback in due:
                 callback()
         for slot in self.slots.values():
@@ -920,12 +1015,11 @@ class BusSupervisor:
         # the watchdog as soon as the drive answers again.
         slot.connected = False
         slot.poll_steps = None
-        if slot.active is not None:
-            self._cut_short(slot, f'link lost ({why})')
+        self._cut_all(slot, f'link lost ({why})')
         with self._cv:
             queued, slot.queue = list(slot.queue), collections.deque()
         for job in queued:
-            job.future.set_exception(NotConnected(f'{job.label}: link lost ({why})'))
+            _resolve(job.future, exc=NotConnected(f'{job.label}: link lost ({why})'))
         slot.state = DriveState(state=State.DISCONNECTED, position_steps=slot.state.position_steps,
                                 homed=slot.state.homed)
         slot.backoff_s = self.settings['reconnect_period_s']
@@ -1048,11 +1142,11 @@ class BusSupervisor:
     def _recheck(self, slot: Slot, fut: concurrent.futures.Future) -> None:
         """Owner thread (the caller's once the bus shuts down: then it is cancelled)."""
         if self._stopping:
-            fut.set_exception(Cancelled(f'{slot.name}: the node is shutting down'))
+            _resolve(fut, exc=Cancelled(f'{slot.name}: the node is shutting down'))
         elif slot.connected:
-            fut.set_result(slot.identity)
+            _resolve(fut, slot.identity)
         elif slot.not_driven and not slot.identity_recheck:
-            fut.set_exception(DriveError(f'not driven: {slot.not_driven}'))
+            _resolve(fut, exc=DriveError(f'not driven: {slot.not_driven}'))
         else:
             slot.connect_waiters.append(fut)
             slot.next_connect_t = min(slot.next_connect_t, self.clock())
@@ -1061,12 +1155,7 @@ class BusSupervisor:
                                  result: Any = None) -> None:
         waiters, slot.connect_waiters = slot.connect_waiters, []
         for fut in waiters:
-            if fut.done():
-                continue
-            if exc is None:
-                fut.set_result(result)
-            else:
-                fut.set_exception(exc)
+            _resolve(fut, result, exc)
 
     # --------------------------------------------------------------------------- shutdown
     def _shutdown_drives(self, standstill_timeout_s: float, disable: set[str]) -> None:
@@ -1077,17 +1166,19 @@ class BusSupervisor:
                 s.queue.clear()
             self._urgent.clear()
         for job in queued:
-            job.future.set_exception(Cancelled(f'{job.label}: the node is shutting down'))
+            _resolve(job.future, exc=Cancelled(f'{job.label}: the node is shutting down'))
         live = [s for s in self.slots.values() if s.connected]
         for s in self.slots.values():
-            if s.active is not None:
-                self._cut_short(s, 'the node is shutting down')
+            self._cut_all(s, 'the node is shutting down')
             s.poll_steps = None
             self._resolve_waiters(s, False)
             self._resolve_connect_waiters(s, Cancelled(f'{s.name}: the node is shutting down'))
         with self._cv:      # after the jobs: a job's time-out timer then finds it ended
-            timers, self._timers = self._timers, []
-        for _, callback in timers:
+            timers, self._timers, self._removed_timers = sorted(self._timers), [], 0
+            due = [e[2] for e in timers if e[2] is not None]
+            for entry in timers:
+                entry[2] = None
+        for callback in due:
             callback()
         for s in live:                 # every drive decelerates at once ...
             self._shutdown_step(s, 'stop', s.drive.stop)
@@ -1123,3 +1214,29 @@ def _steps(result: Any):
     if is_steps(result):
         return (yield from result)
     return result
+
+
+def _nothing() -> None:
+    """What removes a timer that was called at once (after() once the bus shuts down)."""
+
+
+def _resolve(fut: concurrent.futures.Future, result: Any = None,
+             exc: BaseException | None = None) -> None:
+    """End `fut` with `result`, or with `exc`, unless it ended already (its waiter cancelled
+    it while its job waited): nothing a future raises reaches the owner loop."""
+    try:
+        if exc is None:
+            fut.set_result(result)
+        else:
+            fut.set_exception(exc)
+    except concurrent.futures.InvalidStateError:
+        pass
+
+
+def _begin(fut: concurrent.futures.Future) -> bool:
+    """The owner starts the job of `fut`: from now on it cannot be cancelled (it is awaited to
+    its end). False: its waiter cancelled it while it waited, and it is not run."""
+    try:
+        return fut.set_running_or_notify_cancel()
+    except RuntimeError:       # not pending (ended already): nothing to run it for
+        return False

@@ -269,6 +269,45 @@ def test_a_busy_owner_is_not_waited_for(bus, monkeypatch):
     result(fut)
 
 
+# --------------------------------------------------------------------------------- futures
+def test_a_job_that_started_cannot_be_cancelled_and_gives_its_result(bus):
+    """A job's future runs once the owner starts the job: a cancel() then (a service's time-out
+    for jobs not started) fails, the job goes on to its end, its waiter gets its result and
+    the owner lives on."""
+    sup, line, d = bus()
+    failures = []
+    sup.on_failure = lambda s, why: failures.append(why)
+    fut = sup.submit('axis1', Command.homing(lambda: d['axis1'].start_homing(None)))
+    wait_for(lambda: line.calls('axis1', 'homing step'), 1.0, 'homing started')
+    time.sleep(0.3)
+    cancelled = fut.cancel()
+    wait_for(lambda: len(line.calls('axis1', 'homing step')) == 20, 3.0, 'the homing ended')
+    after = sup.submit('axis1', Command.fault_reset(d['axis1'].fault_reset))
+    wait_for(lambda: failures or (after.done() and not after.exception()), 3.0, 'the next job')
+    assert sup.alive and not failures, failures
+    assert not cancelled and result(fut) == ''
+
+
+def test_a_job_cancelled_while_it_waits_never_runs_and_the_owner_goes_on(bus):
+    """A waiting job (a command queued, a stop not yet taken) that its waiter cancels is not
+    run, and what would have ended its future (a stop dropping queued motion) passes it by."""
+    sup, line, d = bus()
+    failures = []
+    sup.on_failure = lambda s, why: failures.append(why)
+    release = threading.Event()
+    busy = sup.submit('axis2', Command(COMMAND, lambda: release.wait(5.0), 'a long transaction'))
+    wait_for(lambda: sup.slots['axis2'].active is not None, 1.0, 'the owner busy')
+    move = sup.submit('axis1', Command.move(lambda: d['axis1'].move_to(7, None), 'move'))
+    stop = sup.submit('axis1', Command.stop(d['axis1'].stop, 'stop 1'))
+    assert move.cancel() and stop.cancel()
+    stop2 = sup.submit('axis1', Command.stop(d['axis1'].stop, 'stop 2'))
+    release.set()
+    wait_for(lambda: failures or (stop2.done() and not stop2.exception()), 3.0, 'stop 2')
+    assert sup.alive and not failures, failures
+    result(busy)
+    assert [c[2] for c in line.calls('axis1') if c[2] in ('move_to', 'stop')] == ['stop']
+
+
 # ------------------------------------------------------------------------------ preemption
 class SlowConnectDrive(ScriptDrive):
     WAIT_S = 1.0
@@ -516,6 +555,61 @@ def test_a_long_operation_gives_the_bus_to_the_other_drives(bus):
     result(fut)
 
 
+class BurstDrive(ScriptDrive):
+    def burst(self, n: int):
+        """n transactions back to back, one a step (a Vector Step SDO sequence yields 0.0)."""
+        for i in range(n):
+            self._tx('burst', i)
+            yield 0.0
+        return 'done'
+
+
+@pytest.mark.parametrize('rate_hz', [5.0, 10.0])
+def test_steps_back_to_back_delay_no_poll_by_more_than_one_step(rate_hz):
+    """A long operation whose steps follow each other at once (no wait between them) leaves
+    every other drive its poll rate: a due poll goes before the operation's next step, so no
+    poll gap exceeds the period, the step in flight and one transaction."""
+    line = Line()
+    drives = {n: BurstDrive(line, n) for n in ('axis1', 'axis2', 'axis3')}
+    sup = BusSupervisor(line, drives, {'publish_rate_hz': rate_hz, 'command_timeout_s': 0.3,
+                                       'reconnect_period_s': 0.05}, on_event=lambda *e: None)
+    sup.start()
+    try:
+        wait_for(lambda: all(s.connected and s.polls for s in sup.slots.values()), 2.0,
+                 'connected and polled')
+        t0 = time.monotonic()
+        assert result(sup.submit('axis1', Command.maintenance(
+            lambda: drives['axis1'].burst(100), 'burst')), 5.0) == 'done'
+        t1 = time.monotonic()
+        bound = 1.0 / rate_hz + TX_S + TX_S + 0.04     # period, a step, a transaction, slack
+        for name in ('axis2', 'axis3'):
+            reads = [c[0] for c in line.calls(name, 'read_state') if t0 <= c[0] <= t1]
+            gap = max(b - a for a, b in zip([t0] + reads, reads + [t1]))
+            assert gap <= bound, f'{name} not polled for {gap:.3f} s (bound {bound:.3f} s)'
+    finally:
+        sup.shutdown(0.5)
+
+
+def test_a_long_operation_goes_on_while_polls_overrun():
+    """Polls that do not fit the period (2 x 10 ms per 10 ms) do not stop a running operation:
+    a step that waited a period for polls goes before them."""
+    line = Line()
+    drives = {n: BurstDrive(line, n) for n in ('axis1', 'axis2', 'axis3')}
+    sup = BusSupervisor(line, drives, {'publish_rate_hz': 100.0, 'command_timeout_s': 0.3,
+                                       'reconnect_period_s': 0.05}, on_event=lambda *e: None)
+    sup.start()
+    try:
+        wait_for(lambda: all(s.connected and s.polls for s in sup.slots.values()), 2.0,
+                 'connected and polled')
+        t0 = time.monotonic()
+        assert result(sup.submit('axis1', Command.maintenance(
+            lambda: drives['axis1'].burst(20), 'burst')), 5.0) == 'done'
+        # each step: at most a period of polls, a poll in flight, and itself
+        assert time.monotonic() - t0 <= 20 * (0.01 + 2 * TX_S) + 0.3
+    finally:
+        sup.shutdown(0.5)
+
+
 def test_stop_of_another_drive_during_a_long_operation_goes_next(bus):
     sup, line, d = bus()
     fut = sup.submit('axis1', Command(MAINTENANCE, d['axis1'].save_params, 'save', motion=False))
@@ -561,6 +655,66 @@ def test_disable_drops_a_queued_enable_but_a_stop_does_not(bus):
     with pytest.raises(Cancelled, match='dropped by disable'):
         result(enable)
     result(busy)
+
+
+class SlowDisableDrive(ScriptDrive):
+    """A 30-step save, and a disable that walks the state machine in 4 transactions, waiting
+    DISABLE_WAIT_S for the drive after each."""
+
+    DISABLE_WAIT_S = 0.25
+
+    def disable(self):
+        for i in range(4):
+            self._tx('disable step', i)
+            yield self.DISABLE_WAIT_S
+        self.enabled = False
+        self.velocity = 0.0
+
+    def save_params(self):
+        for i in range(30):
+            self._tx('save step', i)
+            yield 0.05
+        return 'saved'
+
+
+def test_an_urgent_job_during_a_long_operation_of_its_drive_holds_nobody_else():
+    """A disable that comes while its drive saves runs between the save's steps, stepped like
+    any job: the other drive keeps its poll rate (a gap of at most its period, the longest step
+    and one transaction) and its velocity watchdog stops it on time. The drive's own calls
+    keep their order: the save's steps stop for the disable's, and go on after them."""
+    line = Line()
+    drives = {'axis1': SlowDisableDrive(line, 'axis1'), 'axis2': ScriptDrive(line, 'axis2')}
+    sup = BusSupervisor(line, drives, {'publish_rate_hz': RATE_HZ, 'command_timeout_s': 0.3,
+                                       'reconnect_period_s': 0.05}, on_event=lambda *e: None)
+    sup.start()
+    try:
+        wait_for(lambda: all(s.connected and s.polls for s in sup.slots.values()), 2.0,
+                 'connected and polled')
+        save = sup.submit('axis1', Command.maintenance(drives['axis1'].save_params, 'save'))
+        wait_for(lambda: len(line.calls('axis1', 'save step')) >= 3, 1.0, 'save under way')
+        t0 = time.monotonic()
+        sup.arm_watchdog('axis2')          # falls due while the disable runs
+        deadline = sup.slots['axis2'].velocity_deadline
+        result(sup.submit('axis2', Command.velocity_stream(
+            lambda: drives['axis2'].set_velocity(5.0, None), 'v5', 5.0)))
+        disable = sup.submit('axis1', Command.disable(drives['axis1'].disable))
+        assert result(disable) is None
+        t1 = time.monotonic()
+        assert result(save, 5.0) == 'saved'
+        assert t1 - t0 >= 4 * SlowDisableDrive.DISABLE_WAIT_S
+        reads = [c[0] for c in line.calls('axis2', 'read_state') if t0 <= c[0] <= t1]
+        gap = max(b - a for a, b in zip([t0] + reads, reads + [t1]))
+        bound = 1.0 / RATE_HZ + TX_S + TX_S + 0.05     # period, a step, a transaction, slack
+        assert gap <= bound, f'axis2 not polled for {gap:.3f} s (bound {bound:.3f} s)'
+        stop_t = _stop_time(line, 'axis2', t0)
+        assert stop_t is not None and 0.0 <= stop_t - deadline <= TX_S + 0.05, \
+            (stop_t and stop_t - deadline)
+        calls = [c[2] for c in line.calls('axis1') if c[2] in ('save step', 'disable step')]
+        k = calls.index('disable step')
+        assert calls[k:k + 4] == ['disable step'] * 4 and calls.count('save step') == 30
+        assert [c[3][0] for c in line.calls('axis1', 'save step')] == list(range(30))
+    finally:
+        sup.shutdown(0.5)
 
 
 # -------------------------------------------------------------------------------- watchdog
@@ -712,6 +866,42 @@ def test_what_waits_for_a_poll_or_a_timer_is_answered_at_shutdown(bus):
     assert calls[1:] == [('poll', False), 'timer set after']
 
 
+def test_a_removed_timer_is_never_called_and_leaves_nothing_behind(bus):
+    """after() gives what removes its timer (a service's time-out once its job ended): the
+    callback is not called, and timers removed do not pile up in what the owner looks at."""
+    sup, line, d = bus()
+    calls = []
+    remove = sup.after(0.1, lambda: calls.append('removed'))
+    sup.after(0.1, lambda: calls.append('kept'))
+    remove()
+    for _ in range(1000):
+        sup.after(60.0, lambda: calls.append('late'))()
+    wait_for(lambda: calls, 1.0, 'the kept timer')
+    time.sleep(0.1)
+    assert calls == ['kept']
+    assert len(sup._timers) < 100
+    remove()                                   # once more: nothing
+    sup.shutdown(0.5)
+    assert calls == ['kept']
+
+
+def test_a_shutdown_that_cannot_end_the_owner_says_so(bus):
+    """An owner that does not end within the join time-out (a transaction that hangs) leaves
+    its drives unstopped: shutdown() says so (False, and an error), it does not return as if
+    they were stopped."""
+    sup, line, d = bus()
+    release = threading.Event()
+    sup.submit('axis1', Command(COMMAND, lambda: release.wait(5.0), 'a hung transaction'))
+    wait_for(lambda: sup.slots['axis1'].active is not None, 1.0, 'the owner busy')
+    try:
+        assert sup.shutdown(0.5, join_timeout_s=0.2) is False
+        (error,) = [e for e in sup.events if e[0] == 'error' and 'did not end' in e[2]]
+        assert 'not stopped' in error[2], error
+    finally:
+        release.set()
+    assert sup.shutdown(0.5) is True and not sup.alive
+
+
 def test_a_confirmation_does_not_disarm_a_velocity_accepted_after_it(bus):
     """position p queued, then velocity v accepted (armed) and queued behind it: p confirmed
     must not disarm the watchdog that v, running next, needs."""
@@ -765,6 +955,47 @@ def test_when_polls_overrun_every_drive_gets_its_turn(bus):
     counts = [s.polls - start[n] for n, s in sup.slots.items()]
     assert max(counts) - min(counts) <= 2, counts
     assert sup.cycles - cycles0 >= 19
+
+
+class BurstWaitDrive(ScriptDrive):
+    """read_state() sends its request, then waits WAIT_S for the answer in steps of STEP_S (the
+    Vector Step's burst wait through link.wait): a poll that lasts longer than a poll period."""
+
+    WAIT_S, STEP_S = 0.06, 0.002
+
+    def __init__(self, bus, name, params=None):
+        super().__init__(bus, name, params)
+        self.steps = 0
+
+    def read_state(self):
+        self._tx('read_state')
+        until = time.monotonic() + self.WAIT_S
+        while time.monotonic() < until:
+            self.steps += 1
+            yield self.STEP_S
+        return DriveState(state=State.OPERATION_ENABLED, enabled=True)
+
+
+def test_a_step_wise_poll_longer_than_its_period_waits_between_its_steps():
+    """A poll that outlasts the poll period is due again while it runs: its steps still come at
+    the times it asked for (about one per STEP_S), not as fast as the owner can loop."""
+    assert BurstWaitDrive.WAIT_S > 1.0 / RATE_HZ
+    line = Line()
+    drive = BurstWaitDrive(line, 'axis1')
+    sup = BusSupervisor(line, {'axis1': drive}, {'publish_rate_hz': RATE_HZ,
+                        'command_timeout_s': 0.3, 'reconnect_period_s': 0.05})
+    sup.start()
+    try:
+        wait_for(lambda: sup.slots['axis1'].polls >= 2, 2.0, 'polled')
+        steps0, polls0 = drive.steps, sup.slots['axis1'].polls
+        time.sleep(1.0)
+        steps, polls = drive.steps - steps0, sup.slots['axis1'].polls - polls0
+        bound = 1.0 / BurstWaitDrive.STEP_S * 1.2
+        assert steps <= bound, f'{steps} steps of a poll in 1 s (bound {bound:.0f})'
+        # back to back: each poll one transaction and WAIT_S (and a step's rounding)
+        assert polls >= 1.0 / (TX_S + BurstWaitDrive.WAIT_S + 2 * BurstWaitDrive.STEP_S) - 3
+    finally:
+        sup.shutdown(0.5)
 
 
 def test_an_owner_that_fails_stops_its_drives_says_why_and_ends_once():
