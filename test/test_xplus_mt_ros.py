@@ -332,6 +332,9 @@ def test_joint_command_moves_several_drives_by_joint_name(bench):
     from sensor_msgs.msg import JointState
     bench.enable('axis1')
     bench.enable('axis2')
+    # one jump of 2 rad, not a stream: the start guard (0.1 rad by default) widened
+    assert all(r.successful for r in bench.set_params(
+        *[(f'drives.{d}.joint_command_max_start_offset', 5.0) for d in ('axis1', 'axis2')]))
     js = JointState(name=['xplus_joint2', 'xplus_joint1', 'unknown'],
                     position=[-1.0, 2.0, 0.0])
     bench.ros.publish(JointState, '/joint_command', js)
@@ -476,10 +479,11 @@ def test_joint_command_with_arrays_that_do_not_match_the_names_is_refused(bench)
         st = bench.status(d, lambda m: '1 position values for 2 names' in m.last_refusal,
                           what=f'{d} refusal')
         assert st.commands_refused >= 1 and not st.moving
-    # the next message is a good one: had the bad one moved anything, this one shows it
+    # the next message is a good one (within the start guard's 0.1 rad): had the bad one moved
+    # anything, this one shows it
     bench.ros.publish(JointState, '/joint_command',
-                      JointState(name=['xplus_joint1'], position=[0.5]))
-    bench.status('axis1', lambda m: not m.moving and abs(m.position - 0.5) < 1e-3,
+                      JointState(name=['xplus_joint1'], position=[0.05]))
+    bench.status('axis1', lambda m: not m.moving and abs(m.position - 0.05) < 1e-3,
                  what='the good command done')
     assert bench.fresh_true_steps('axis2') == before[1]
 

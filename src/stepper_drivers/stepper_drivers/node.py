@@ -107,6 +107,10 @@ class DriveHandle:
         self.status_due = 0.0              # time.monotonic() of the next status regardless
         # callers awaiting the publication of a snapshot newer than a change (owner thread)
         self.publish_waiters: list[concurrent.futures.Future] = []
+        # (steps, slot, slot.submitted, slot.reconnects) of the last target the drive confirmed
+        # (set by the owner thread in one assignment, read by the command thread): see _holds
+        self.held_target: tuple | None = None
+        self.stream_t = -math.inf          # time.monotonic() of the last joint_command position
 
     @property
     def sup(self) -> BusSupervisor | None:
@@ -185,6 +189,7 @@ class DriveNode(Node):
         # what the owner threads publish (its publishers come with the interfaces)
         self.publishing = StatePublisher(self)
         self._refusal_lock = threading.Lock()  # commands and services both count refusals
+        self._foreign_joints: set[str] = set()   # joint_command names told (command thread)
         self.refusals = 0                      # of every drive (under _refusal_lock)
         self._handlers = 0                     # service and action callbacks running (handling)
         self._handlers_cv = threading.Condition()
@@ -468,20 +473,61 @@ class DriveNode(Node):
         h.slot.last_error = msg
 
     def command_position(self, h: DriveHandle, position: float,
-                         age_s: float | None = None) -> None:
-        """A position_command (or a joint_command position) published age_s ago."""
-        what = 'position_command'
+                         age_s: float | None = None, stream: bool = False) -> None:
+        """A position_command, or with `stream` a joint_command position, published age_s
+        ago. A target the drive already took, with no job for the drive since and its snapshot
+        moving or standing there, is not sent again: a ros2_control hold streams one target
+        100 times a second. A stream's first position must be near the joint (`_check_start`)."""
+        what = 'joint_command position' if stream else 'position_command'
         try:
             self._check_age(h, f'{what} {position}', age_s,
                             self.bus_params['position_command_max_age_s'],
                             'position_command_max_age_s')
             steps = self.check_position(h, what, position)
+            if stream:
+                self._check_start(h, what, position)
         except CommandRefused:
+            return
+        if stream:
+            h.stream_t = time.monotonic()
+        if self._holds(h, steps):
             return
         motion = h.motion()
         fut = h.sup.submit(h.name, Command.position_stream(
             lambda: h.drive.move_to(steps, motion), f'{what} {position}'), hand_over=True)
-        fut.add_done_callback(lambda f: self._job_failed(h, f'{what} {position}', f))
+        target = (steps, h.slot, getattr(fut, 'submitted', None), h.slot.reconnects)
+        fut.add_done_callback(lambda f: self._position_done(h, f'{what} {position}', f, target))
+
+    def _check_start(self, h: DriveHandle, what: str, position: float) -> None:
+        """A joint_command position that starts a stream (none for command_timeout_s) must be
+        within joint_command_max_start_offset of where the joint stands: ros2_control's older
+        topic plugin sends 0.0 (or the URDF's initial_value) before a controller writes."""
+        if time.monotonic() - h.stream_t <= self.bus_params['command_timeout_s']:
+            return
+        bound = h.param('joint_command_max_start_offset')
+        actual = h.position
+        if abs(position - actual) > bound:
+            self.refuse(h, f'{what} {position:g} for joint {h.cfg.joint_name!r} starts a stream '
+                           f'{abs(position - actual):g} from where the joint stands ({actual:g}), '
+                           f'more than drives.{h.name}.joint_command_max_start_offset '
+                           f'({bound:g}): not sent; command the joint from where it stands')
+
+    def _holds(self, h: DriveHandle, steps: int) -> bool:
+        """The drive took this very target (its move_to confirmed), nothing was submitted for
+        it since, it did not reconnect, and its snapshot shows it moving or standing on it."""
+        held, slot = h.held_target, h.slot
+        if held is None or held != (steps, slot, slot.submitted, slot.reconnects):
+            return False
+        state = slot.state
+        return state.moving or abs(state.position_steps - steps) <= 1
+
+    def _position_done(self, h: DriveHandle, what: str, fut: concurrent.futures.Future,
+                       target: tuple) -> None:
+        """(Owner thread) a position job ended: a confirmed one is the held target (_holds);
+        any other outcome forgets it."""
+        ok = not fut.cancelled() and fut.exception() is None
+        h.held_target = target if ok and target[2] is not None else None
+        self._job_failed(h, what, fut)
 
     def command_velocity(self, h: DriveHandle, velocity: float,
                          age_s: float | None = None) -> None:
@@ -532,13 +578,25 @@ class DriveNode(Node):
         for i, joint in enumerate(msg.name):
             h = self.by_joint.get(joint)
             if h is None:
-                self.log.warning(f'joint_command: unknown joint {joint!r} (this node has '
-                                 f'{sorted(self.by_joint)})', throttle_duration_sec=5.0)
+                self._unknown_joint(joint)
                 continue
+            # NaN: no command for this joint (a ros2_control controller that has not written)
             if msg.position and not math.isnan(msg.position[i]):
-                self.command_position(h, msg.position[i], age_s)
+                self.command_position(h, msg.position[i], age_s, stream=True)
             elif msg.velocity and not math.isnan(msg.velocity[i]):
                 self.command_velocity(h, msg.velocity[i], age_s)
+
+    def _unknown_joint(self, joint: str) -> None:
+        """A joint_command name this node does not have. joint_command_shared (a ros2_control
+        block for several nodes names all their joints): told once for each name; otherwise a
+        mistake, warned every 5 s."""
+        if not self.bus_params['joint_command_shared']:
+            self.log.warning(f'joint_command: unknown joint {joint!r} (this node has '
+                             f'{sorted(self.by_joint)})', throttle_duration_sec=5.0)
+        elif joint not in self._foreign_joints:
+            self._foreign_joints.add(joint)
+            self.log.info(f"joint_command: joint {joint!r} is not one of this node's "
+                          f'{sorted(self.by_joint)}: ignored (joint_command_shared)')
 
     # --------------------------------------------------------------- waiting without a thread
     async def await_future(self, fut: concurrent.futures.Future, *,
@@ -604,7 +662,7 @@ class DriveNode(Node):
     def after_set_parameters(self, params: list[Parameter]) -> None:
         for p in params:
             if p.name in ('publish_rate_hz', 'command_timeout_s', 'status_rate_hz',
-                          'position_command_max_age_s'):
+                          'position_command_max_age_s', 'joint_command_shared'):
                 self.bus_params[p.name] = p.value     # the supervisors read it live
             self.log.info(f'parameter {p.name} := {p.value}')
 

@@ -201,6 +201,9 @@ BUS_PARAMS = (
     P('status_rate_hz', 1.0, 'least rate of ~/<drive>/status: it is published at the poll '
       'that sees a change (state, position, velocity, alarms, refusals...) and at least this '
       'often otherwise [Hz]', 0.1, 1000.0, read_only=False),
+    P('joint_command_shared', False, 'joint_command carries the joints of other nodes too (one '
+      'ros2_control block for several nodes): names this node does not have are ignored, told '
+      'once each; false: a warning every 5 s names them', read_only=False),
     P('owner_thread_priority', 10, 'real-time priority (SCHED_FIFO, 1..99) of the bus owner '
       'threads, so that a command reaches the wire without waiting for the scheduler on a '
       "loaded machine (as ros2_control's controller_manager asks for); 0 = the normal "
@@ -222,6 +225,10 @@ DRIVE_PARAMS = (
       read_only=False),
     P('max_velocity', 10.0, 'largest velocity a command may ask for [rad/s or m/s]', 0.0, 1e9,
       read_only=False),
+    P('joint_command_max_start_offset', 0.1, 'a joint_command position that starts a stream (no '
+      'joint_command position for command_timeout_s) farther than this from where the joint '
+      'stands is refused: a first command of 0 from a ros2_control plugin, a stream meant for '
+      'another robot [rad or m]', 0.0, INF, read_only=False),
     P('max_acceleration', 100.0, 'largest acceleration/deceleration of a profile '
       '[rad/s^2 or m/s^2]',
       0.0, 1e12, read_only=False),

@@ -177,6 +177,7 @@ class Slot:
         self.backoff_s = reconnect_period_s
         self.velocity_deadline: float | None = None
         self.arm_seq = 0             # velocity commands accepted so far (arm_watchdog calls)
+        self.submitted = 0           # jobs submitted for this drive (submit, under _cv)
         self.watchdog_retry_t = 0.0
         self.poll_waiters: list[tuple[float, Callable[[bool], None]]] = []
         # the last poll was the poll group's (poll_group.py): the owner need not wake for the
@@ -293,6 +294,10 @@ class BusSupervisor:
             if hand_over and self._idle:
                 job.taken = threading.Event()
             slot = self.slots[drive]
+            slot.submitted += 1
+            # which submission of this drive it is: a caller that compares it with
+            # slot.submitted later knows whether any job was submitted for the drive since
+            fut.submitted = slot.submitted
             if kind == URGENT:
                 self._urgent.append(job)
             else:
