@@ -305,3 +305,44 @@ def test_a_wrong_identity_is_not_driven_and_fault_reset_checks_it_again_at_once(
                       what='axis1 driven again')
     assert time.monotonic() - t0 < 10.0 and not st.enabled
     assert bench.status('axis2').connected
+
+
+class LineTimingBench(Bench):
+    """The simulator's line timing: replies come as late as on a real 19200-baud line."""
+
+    def sim_args(self):
+        return super().sim_args() + ['-p', 'line_timing:=true']
+
+
+def test_a_joint_command_stream_for_both_units_moves_both_while_it_runs(procs, ros, tmp_path):
+    """ros2_control's topic interface streams both joints in one sensor_msgs/JointState at
+    100 Hz on /joint_command (a quintic ramp of 1 rad over 2 s from where they stand). On the
+    19200-baud line a unit's move takes longer than 10 ms, so each unit's newer set point
+    replaces its waiting one; the units take turns on the line, so both follow the ramp while
+    it runs: neither stands still until the stream ends."""
+    from test_ros2_control_stream import RAMP_RAD, RAMP_S, PluginStream, quintic
+    bench = LineTimingBench(procs, ros, tmp_path)
+    drives = ('axis1', 'axis2')
+    for d in drives:
+        bench.enable(d)
+    sts = [bench.status(d, lambda m: m.enabled and not m.moving, what=f'{d} enabled')
+           for d in drives]
+    # the first positions are where the joints stand (the node's start guard)
+    start = [st.position for st in sts]
+    tracks = [Track(bench.ros, bench.true_topic(d)) for d in drives]
+    stream = PluginStream(bench.ros, [st.joint_name for st in sts])
+    stream.run('position', lambda t: [x + RAMP_RAD * quintic(t / RAMP_S) for x in start],
+               RAMP_S)
+    t_end = stream.sent[-1][0]
+    for i, d in enumerate(drives):
+        with tracks[i].lock:
+            reached = max((abs(x / STEPS_PER_RAD - start[i]) for t, x in tracks[i].samples
+                          if t <= t_end), default=0.0)
+        # the set point is at RAMP_RAD when the stream ends; a unit that takes its turns is a
+        # round of both units' moves behind it, far less than two thirds of the ramp
+        assert reached >= RAMP_RAD / 3, (f'{d}: {reached:.3f} rad of the {RAMP_RAD} rad ramp '
+                                         'when the stream ended')
+    for i, d in enumerate(drives):
+        bench.status(d, lambda m, i=i: not m.moving and abs(m.position - start[i] - RAMP_RAD)
+                     < 2 / STEPS_PER_RAD, timeout_s=15.0, what=f'{d} at the end of the ramp')
+        assert bench.status(d).commands_refused == sts[i].commands_refused

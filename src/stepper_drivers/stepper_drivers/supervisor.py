@@ -27,6 +27,10 @@ Order:
   comes at the time it asked for.
 - A streaming command (kind STREAM: position or velocity) replaces a STREAM job of the same
   topic still waiting at the tail of that drive's queue: the drive gets the newest set point.
+- Drives with waiting jobs take turns: the next job started is that of the drive whose last
+  job started longest ago (`_next_turn`). A replacement keeps the drive's turn, so a stream on
+  one drive (a newer set point always waiting) keeps another drive's job waiting for at most
+  one job of each other drive, never until the stream ends.
 - URGENT jobs (stop, quick stop, disable, the watchdog's stop) go before everything else: they
   drop the drive's queued motion jobs (which would move after the stop) and cut its running
   motion job short, and reach the wire after at most the one transaction already in flight.
@@ -177,6 +181,9 @@ class Slot:
         self.backoff_s = reconnect_period_s
         self.velocity_deadline: float | None = None
         self.arm_seq = 0             # velocity commands accepted so far (arm_watchdog calls)
+        # jobs the owner had started when it started this drive's last one (0: none yet): the
+        # drive with waiting work and the lowest turn goes next (_next_turn)
+        self.turn = 0
         self.submitted = 0           # jobs submitted for this drive (submit, under _cv)
         self.watchdog_retry_t = 0.0
         self.poll_waiters: list[tuple[float, Callable[[bool], None]]] = []
@@ -226,6 +233,7 @@ class BusSupervisor:
         self._shutdown_request: tuple[float, set[str]] | None = None
         self._thread = threading.Thread(target=self._run, name=f'owner {name}', daemon=True)
         self._jobs_since_poll = 0
+        self._turns = 0             # jobs started from the drives' queues (owner thread)
         # after(): a heap (under _cv) of [when, sequence number, callback or None once removed
         # or called]; only the owner pops (its look at the first one takes no lock)
         self._timers: list[list[Any]] = []
@@ -530,9 +538,10 @@ class BusSupervisor:
         stop; a poll overdue by a period once MAX_JOBS_BEFORE_OVERDUE_POLL jobs went first; the
         next step of a running operation, after the due polls unless it waited a period for
         them (so a long operation delays no poll by more than its step in flight, nor do
-        overrunning polls stop it); the oldest waiting command; the next step of a poll; a due
-        reconnect; the longest-due poll. One pass over the slots (it runs before every
-        transaction: the CPU budget, docs/benchmarks.md)."""
+        overrunning polls stop it); the waiting command of the drive whose turn it is
+        (`_next_turn`); the next step of a poll; a due reconnect; the longest-due poll. One
+        pass over the slots (it runs before every transaction: the CPU budget,
+        docs/benchmarks.md)."""
         self.passes += 1
         now = self.clock()
         events = self._events
@@ -591,7 +600,8 @@ class BusSupervisor:
             self._step_active(step)
             return 0.0
         if queued:
-            for slot in self._by_age():           # the oldest waiting command
+            slot = self._next_turn()
+            if slot is not None:
                 self._jobs_since_poll += 1
                 self._start_job(slot)
                 return 0.0
@@ -706,12 +716,15 @@ class BusSupervisor:
         self._quiet_pass = (events, next_t, horizon, self._vouched)
         return min(next_t, horizon, now + 0.5) - now
 
-    def _by_age(self) -> list[Slot]:
-        if not any(s.queue for s in self.slots.values()):   # the usual case: no lock taken
-            return []
-        with self._cv:
-            ready = [s for s in self.slots.values() if s.queue and s.active is None]
-        return sorted(ready, key=lambda s: s.queue[0].enqueued_t)[:1]
+    def _next_turn(self) -> Slot | None:
+        """The drive whose waiting job starts next: of the drives with a job waiting and none
+        running, the one whose last job started longest ago (of those that never started one,
+        the one whose first waiting job is the oldest). Drives with work take turns: a drive
+        whose newer set point keeps replacing its waiting one (a stream) goes again only after
+        every other drive that waited meanwhile had its job started."""
+        with self._cv:        # (submit may replace a queue's only job meanwhile)
+            return min((s for s in self._slot_list if s.queue and s.active is None),
+                       key=lambda s: (s.turn, s.queue[0].enqueued_t), default=None)
 
     def _period_s(self) -> float:
         return 1.0 / self.settings['publish_rate_hz']
@@ -781,6 +794,8 @@ class BusSupervisor:
             job.taken.set()
         if not _begin(job.future):     # cancelled by its waiter while it waited
             return
+        self._turns += 1
+        slot.turn = self._turns
         if not slot.connected:
             _resolve(job.future, exc=NotConnected(
                 f'{job.label}: drive {slot.name} is DISCONNECTED ({self.bus.description})'))

@@ -269,6 +269,66 @@ def test_a_busy_owner_is_not_waited_for(bus, monkeypatch):
     result(fut)
 
 
+class SerialMoveDrive(ScriptDrive):
+    """move_to as a drive on a slow serial line sends it: MOVE_TX transactions, one a step (an
+    RD4 writes its profile, the target and the control word)."""
+
+    MOVE_TX = 5
+
+    def move_to(self, target_steps, motion):
+        self._tx('move_to', target_steps)
+        for i in range(1, self.MOVE_TX):
+            yield 0.0
+            self._tx('move_to write', i)
+
+
+def test_drives_streamed_on_a_slow_line_take_turns():
+    """Both drives streamed a position set point every 10 ms in one message (ros2_control's
+    topic interface; axis1's submitted first) on a line where a move takes 5 transactions:
+    each drive's newer set point replaces its waiting one, and the drives take turns, so
+    neither waits for more than the other's one move (and the polls due meanwhile)."""
+    line = Line()
+    drives = {n: SerialMoveDrive(line, n) for n in ('axis1', 'axis2')}
+    sup = BusSupervisor(line, drives, {'publish_rate_hz': RATE_HZ, 'command_timeout_s': 0.3,
+                                       'reconnect_period_s': 0.05}, on_event=lambda *e: None)
+    stop = threading.Event()
+
+    def stream():
+        i = 0
+        while not stop.wait(0.01):
+            i += 1
+            for name, drive in drives.items():
+                sup.submit(name, Command.position_stream(
+                    lambda drive=drive, i=i: drive.move_to(i, None), f'p{i}'))
+    publisher = threading.Thread(target=stream)
+    sup.start()
+    try:
+        wait_for(lambda: all(s.connected and s.polls for s in sup.slots.values()), 2.0,
+                 'connected and polled')
+        publisher.start()
+        wait_for(lambda: line.calls(call='move_to'), 1.0, 'the stream under way')
+        t0 = time.monotonic()
+        time.sleep(1.0)
+        t1 = time.monotonic()
+    finally:
+        stop.set()
+        if publisher.is_alive():
+            publisher.join()
+        sup.shutdown(0.5)
+    # the moves that started in the window, in their order on the wire: they alternate (each
+    # drive always has a newer set point waiting when the other's move ends), so a set point
+    # waits for the move in flight and the other drive's one move at most
+    moves = [c[1] for c in line.calls(call='move_to') if t0 <= c[0] <= t1]
+    counts = {name: moves.count(name) for name in drives}
+    repeated = [k for k in range(1, len(moves)) if moves[k] == moves[k - 1]]
+    assert not repeated, f'a drive moved twice while the other waited: {counts} {moves}'
+    # a round: the two moves, and every drive's poll once in each poll period it touches;
+    # half the rounds that fit the window (a loaded machine stretches the transactions)
+    move_s = SerialMoveDrive.MOVE_TX * TX_S
+    round_s = 2 * move_s + (2 * move_s * RATE_HZ + 1) * len(drives) * TX_S
+    assert min(counts.values()) >= (t1 - t0) / round_s / 2, counts
+
+
 # --------------------------------------------------------------------------------- futures
 def test_a_job_that_started_cannot_be_cancelled_and_gives_its_result(bus):
     """A job's future runs once the owner starts the job: a cancel() then (a service's time-out
