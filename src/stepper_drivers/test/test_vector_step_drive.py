@@ -35,17 +35,28 @@ def params(**over):
     return p
 
 
+# SDO upload request of 0x6064:00 (CiA 301 "initiate upload": command 0x40, index, sub-index)
+POSITION_UPLOAD = bytes([0x40, 0x64, 0x60, 0x00])
+
+
 class Monitor:
-    """Records every frame on the bus (a third client)."""
+    """Records every frame on the bus (a third client). Where a test plays a node with it (the
+    simulator's link cut), `positions[node_id]` is that node's 0x6064: it answers SDO uploads
+    of it as the node's SDO server would (expedited, 4 bytes)."""
 
     def __init__(self, port):
         self.bus = can.Bus(interface='socketcand', host='127.0.0.1', port=port, channel='can0',
                            tcp_tune=True)
         self.frames: list[tuple[int, bytes]] = []
+        self.positions: dict[int, int] = {}
         self.notifier = can.Notifier(self.bus, [self._on], 0.1)
 
     def _on(self, msg):
-        self.frames.append((msg.arbitration_id, bytes(msg.data)))
+        data = bytes(msg.data)
+        self.frames.append((msg.arbitration_id, data))
+        position = self.positions.get(msg.arbitration_id - 0x600)
+        if position is not None and data[:4] == POSITION_UPLOAD:
+            self.send(msg.arbitration_id - 0x80, b'\x43' + data[1:4] + struct.pack('<i', position))
 
     def send(self, cob: int, data: bytes) -> None:
         self.bus.send(can.Message(arbitration_id=cob, data=data, is_extended_id=False))
@@ -81,14 +92,16 @@ class Monitor:
 
 class Bench:
     """Broker, simulator (axis1 = node 1 with a BLS, axis2 = node 2), a monitor, and the driver's
-    bus and drives; `over` changes driver parameters, `axis2` the second simulated drive."""
+    bus and drives; `over` changes driver parameters, `axis2` the second simulated drive,
+    `tpdo_lag_s` delays the simulator's TxPDO2..4 (a slow or busy bus)."""
 
-    def __init__(self, tmp_path, axis2=None, **over):
+    def __init__(self, tmp_path, axis2=None, tpdo_lag_s=0.0, **over):
         self.broker = SocketcandBroker(port=0, ready_delay_s=0.01)
         self.broker.start()
         self.sim = VectorStepSim([NodeConfig('axis1', 1, limit_neg_steps=-3200.0),
                                   axis2 or NodeConfig('axis2', 2)], port=self.broker.port,
-                                 reboot_delay_s=0.02, storage_dir=str(tmp_path))
+                                 reboot_delay_s=0.02, storage_dir=str(tmp_path),
+                                 tpdo_lag_s=tpdo_lag_s)
         self.monitor = Monitor(self.broker.port)
         self.sim.start()
         self.params = params(**{'can.port': self.broker.port, **over})
@@ -226,7 +239,9 @@ def test_jog_reverses_and_stops_on_bit_4(bench):
     s = settle(d)
     assert s.enabled and s.velocity_steps_s == 0.0
     bench.monitor.catch_up()
-    assert not bench.monitor.since(mark, 0x601), 'JOG stop is the controlword, not an SDO'
+    # (the standing axis' position is read once after the statusword that says it stands)
+    assert not [f for _, f in bench.monitor.since(mark, 0x601) if f[:4] != POSITION_UPLOAD], \
+        'JOG stop is the controlword, not an SDO'
 
 
 def test_stop_in_profile_position_uses_the_rcmdwr_stop_bit(bench):
@@ -451,6 +466,7 @@ def test_a_snapshot_waits_for_the_rest_of_a_statusword_burst(bench, monkeypatch)
 
     def burst(sw, position, velocity, rstsflg, cobs=(0x181, 0x281, 0x381, 0x481)):
         frames = txpdo_frames(sw, position, vm.MODE_HOMING, velocity, rstsflg)
+        bench.monitor.positions[1] = position
         bench.monitor.send(0x701, b'\x05')              # heartbeat: OPERATIONAL
         for cob in cobs:
             bench.monitor.send(cob, frames[cob])
@@ -481,14 +497,16 @@ def test_a_snapshot_waits_for_the_rest_of_a_statusword_burst(bench, monkeypatch)
 
     def upload(index, sub):
         uploads.append((index, sub))
-        return {vm.RSTSFLG: 0, vm.ERROR_REGISTER: 0x81}[index]
+        return {vm.RSTSFLG: 0, vm.ERROR_REGISTER: 0x81, vm.POSITION_ACTUAL_VALUE: 500}[index]
     monkeypatch.setattr(d.link, 'read', upload)
     burst(other, 500, 0, vm.RSTSFLG_HOMED, cobs=(0x181, 0x281, 0x381))
     newest_statusword(other)
     s = snap(d)
     assert s.status_word == other
     assert time.monotonic() - d._statusword_seen[1] >= 0.3
-    assert uploads == [(vm.RSTSFLG, vm.AEC_SUB), (vm.ERROR_REGISTER, 0)]   # TxPDO4's objects
+    # TxPDO4's objects, then the position of the axis that stands (once per statusword)
+    read = [(vm.RSTSFLG, vm.AEC_SUB), (vm.ERROR_REGISTER, 0), (vm.POSITION_ACTUAL_VALUE, 0)]
+    assert uploads == read
     assert not s.homed                     # Rstsflg as uploaded, not as the old TxPDO4 said
     bench.monitor.send(0x701, b'\x05')
     start = time.monotonic()
@@ -504,7 +522,7 @@ def test_a_snapshot_waits_for_the_rest_of_a_statusword_burst(bench, monkeypatch)
     assert s.status_word == other and not s.homed
     burst(other, 500, 0, vm.RSTSFLG_HOMED, cobs=(0x481,))
     wait(lambda: snap(d).homed, what="the newest state's TxPDO4 stored")
-    assert uploads == [(vm.RSTSFLG, vm.AEC_SUB), (vm.ERROR_REGISTER, 0)]
+    assert uploads == read
 
 
 def test_a_moving_position_read_by_sdo_keeps_the_time_of_its_answer(bench, monkeypatch):
@@ -551,6 +569,7 @@ def test_the_state_machine_reads_the_statusword_of_txpdo1_not_of_an_overtaken_tx
     bench.sim.nodes['axis1'].link_cut = True           # the monitor plays node 1
     ready, enabled = 0x0631, 0x0637
 
+    bench.monitor.positions[1] = 100
     bench.monitor.send(0x701, b'\x05')
     for cob, data in txpdo_frames(ready, 100).items():
         bench.monitor.send(cob, data)
@@ -774,6 +793,7 @@ def test_a_snapshot_is_coherent_on_a_10_kbit_bus(tmp_path):
         def burst(sw, position, rstsflg, paced):
             out = {**txpdo_frames(sw, position, rstsflg=rstsflg),
                    **txpdo_frames(sw, -position, node_id=2)}
+            bench.monitor.positions.update({1: position, 2: -position})
             bench.monitor.send(0x701, b'\x05')
             for k, cob in enumerate(sorted(out)):                # CAN arbitration order
                 if paced and k:
@@ -791,6 +811,85 @@ def test_a_snapshot_is_coherent_on_a_10_kbit_bus(tmp_path):
         sender.join()
         assert s.status_word == reached and not s.moving and s.target_reached
         assert s.position_steps == 1600 and s.homed, 'new statusword with older values'
+    finally:
+        bench.close()
+
+
+# --- a standing axis: its position read after the statusword that says it stands ----------------
+def standing_positions(d, until_s):
+    """read_state() every 2 ms until `until_s` (time.monotonic()): the positions of the
+    snapshots that show the axis standing (statusword bit 8 "Motor moving" off)."""
+    seen = []
+    while time.monotonic() < until_s:
+        s = snap(d)
+        if not s.moving:
+            seen.append(s.position_steps)
+        time.sleep(0.002)
+    return seen
+
+
+def homing_attained(d):
+    """A snapshot that shows homing attained, or None."""
+    s = snap(d)
+    return s if s.homing == HomingState.ATTAINED else None
+
+
+def frames_in_s(bench, lag_s):
+    """From a statusword change until every TxPDO it triggers is in and TxPDO2's event timer
+    has repeated it once: the lag, the inhibit time, the event timer, the receive thread."""
+    return lag_s + (bench.params['tpdo_inhibit_ms'] + bench.params['tpdo_event_timer_ms']) \
+        / 1000.0 + vs.BURST_SLACK_S
+
+
+@pytest.mark.parametrize('lag_s', [0.0, 0.05, 0.15])
+def test_a_move_ends_on_a_position_read_after_the_statusword_that_ends_it(tmp_path, lag_s):
+    """TxPDO2..4 `lag_s` behind TxPDO1 (a slow or busy bus). A move shorter than the lag ends
+    before the TxPDO2..4 of its start are in: until then the last of theirs are the frames of
+    the standstill before it, with the very statusword of its end (target reached, bit 8
+    off) and the position it started from. From the statusword that ends the move until
+    the last TxPDO it triggers is in, every snapshot that shows the axis standing shows the
+    drive's 0x6064, at every TxPDO spacing: what a move_to is answered on."""
+    bench = Bench(tmp_path, tpdo_lag_s=lag_s)
+    try:
+        d = bench.connect('axis1')
+        complete(d.enable())
+        frames_s = frames_in_s(bench, lag_s)
+        position = settle(d).position_steps
+        assert set(standing_positions(d, time.monotonic() + frames_s)) == {position}
+        for distance in (16, -24):       # 20 and 25 ms on MOTION's ramps: shorter than a lag
+            target = position + distance
+            complete(d.move_to(target, MOTION))
+            wait(lambda: not d._read_statusword() & vm.SW_BIT_MOTOR_MOVING, 2.0,
+                 'the statusword that ends the move', period_s=0.001)
+            seen = standing_positions(d, time.monotonic() + frames_s)
+            assert round(bench.sim.true_position_steps('axis1')) == target
+            assert seen and set(seen) == {target}, \
+                f'standing at {sorted(set(seen))} after a move from {position} to {target}'
+            position = target
+    finally:
+        bench.close()
+
+
+def test_homing_ends_on_the_position_read_after_the_statusword_that_ends_it(tmp_path):
+    """Homing on the spot (35) forces 0x607C as the position; twice, with another offset, and
+    TxPDO2..4 50 ms behind TxPDO1. The second homing ends with the statusword of the first
+    (homing attained, bit 8 off): until its TxPDO2 is in, the last one holds the first
+    offset. Homing ends (ATTAINED) on the drive's 0x6064, and the axis shows it while it
+    stands."""
+    lag_s = 0.05
+    bench = Bench(tmp_path, tpdo_lag_s=lag_s)
+    try:
+        d = bench.connect('axis1')
+        complete(d.enable())
+        frames_s = frames_in_s(bench, lag_s)
+        for offset in (100, 300):
+            complete(d.start_homing(Homing(35, offset, 0.0, 0.0, 64000.0)))
+            s = wait(lambda: homing_attained(d), 2.0, 'homing attained', period_s=0.001)
+            assert round(bench.sim.true_position_steps('axis1')) == offset
+            assert not s.moving and s.position_steps == offset, \
+                f'homed at {s.position_steps}, the drive at {offset}'
+            seen = standing_positions(d, time.monotonic() + frames_s)
+            assert seen and set(seen) == {offset}, f'standing at {sorted(set(seen))}'
     finally:
         bench.close()
 

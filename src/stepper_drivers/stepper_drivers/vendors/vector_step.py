@@ -9,7 +9,8 @@ IdentityError otherwise), NMT reset communication with the boot-up latch, heartb
 0x1017, the drive-side watchdogs (0x1006 SYNC timeout, 0x1016 consumer of this node's heartbeat),
 the PDO set of DRIVER_RPDOS/DRIVER_TPDOS written with the manual's mapping procedure, values
 seeded by SDO, NMT start and a heartbeat that shows OPERATIONAL. After that the state comes from
-TxPDOs only, so `read_state()` costs no bus traffic; the heartbeat consumer and the boot-up latch
+TxPDOs, so `read_state()` costs no bus traffic but one SDO read of 0x6064 for a statusword that
+says the axis stands (see `_standing_position`); the heartbeat consumer and the boot-up latch
 turn a silent or rebooted node into a LinkError (the node layer reconnects).
 
 Interpolated position (mode 7) is step-wise like the rest for its start (`start_interpolation`);
@@ -35,6 +36,7 @@ from __future__ import annotations
 
 import logging
 import math
+import threading
 import time
 from typing import Any, Mapping
 
@@ -71,6 +73,10 @@ BURST_SLACK_S = 0.02
 INHIBITED_TPDOS = (2, 3)
 POSITION_TPDO = next(n for n, entries in enumerate(vm.DRIVER_TPDOS, 1)
                      if any(index == vm.POSITION_ACTUAL_VALUE for index, _, _ in entries))
+# A standing axis' 0x6064 is read by SDO after its statusword came (_standing_position); a
+# newer statusword before the answer voids it: at most this many reads in one poll, then the
+# snapshot does not show the axis standing (the next poll reads again).
+STANDING_READS = 3
 # 0x1016 consumer time: this many periods of the node's own heartbeat ("deve essere settato piu'
 # alto del tempo impostato nel generatore" [CONSUMER HEARTBEAT TIME]). 10: 1 s at 100 ms, as the
 # node's own heartbeat_timeout_s; 3 (300 ms) tripped on a loaded 2-core machine when the python-can
@@ -200,7 +206,8 @@ class JogMode(Mode):
 class VectorStepDrive(Cia402Drive, InterpolatingDrive):
     """One Vector Step on a CAN bus (node-ID = parameter `node_id`)."""
 
-    state_from_cache = True      # read_state: the TxPDO values (SDO only for faults, warnings)
+    # read_state: the TxPDO values (SDO only for faults, warnings and a standing axis' position)
+    state_from_cache = True
     # every PP move sets bit 5, "1 = Cambia setpoint immediatamente" ([CONTROLWORD])
     retargets_on_the_way = True
     CW_SW_DELAY_S = 0.002        # first statusword check after a controlword (TxPDO on change)
@@ -252,7 +259,17 @@ class VectorStepDrive(Cia402Drive, InterpolatingDrive):
         self._reset_code = 0               # the fault code a fault_reset started from
         self._warnings: tuple[float, tuple[str, ...]] = (0.0, ())
         self._pdo_statusword: dict[int, int] = {}    # COB-ID -> statusword of its last TxPDO
-        self._statusword_seen = (0, 0.0)             # (newest TxPDO statusword, when it came)
+        # (newest TxPDO1 statusword, when it came, its number): every change of TxPDO1's
+        # statusword gets the next number, never reset, so a number names one of them even
+        # where the drive comes back to an earlier value (the end of a move is the standstill
+        # before it again)
+        self._statusword_seen = (0, 0.0, 0)
+        # what the receive thread writes (_on_tpdo) and a snapshot reads as one (the statusword
+        # and its number, the cache, the standing position)
+        self._rx_lock = threading.Lock()
+        # (statusword number, 0x6064): the position of a standing axis, read by SDO after that
+        # statusword came (_standing_position); None: not read since the last change
+        self._standing: tuple[int, int] | None = None
         self._position_cob = vm.PDO_COB_BASES_TX[POSITION_TPDO - 1] + self.node_id
         self._state_cob = vm.PDO_COB_BASES_TX[0] + self.node_id      # TxPDO1
         # (reception, position): the last TxPDO2, or the SDO read of a late one
@@ -266,7 +283,7 @@ class VectorStepDrive(Cia402Drive, InterpolatingDrive):
         # look
         self._quiet: tuple[int, int | None, HomingState, DriveState] | None = None
         self._alive_until = 0.0
-        self._burst_given_up: int | None = None
+        self._burst_given_up: int | None = None   # number of the statusword whose wait gave up
         self._ip_active = False            # start_interpolation done; no stop or error since
 
     def _prefix(self) -> str:
@@ -308,6 +325,10 @@ class VectorStepDrive(Cia402Drive, InterpolatingDrive):
         else:
             pdo = node.rpdo[2]
             pdo[vm.TARGET_POSITION].raw = self._target
+        if cw & CW_BIT_NEW_SET_POINT:
+            # bit 4 starts every mode's run [CONTROLWORD]: homing on the spot forces 0x607C and
+            # may end in the statusword it started from; the position is read again
+            self._standing = None
         pdo[vm.CONTROLWORD].raw = cw
         self.can.transactions += 1
         self.can.send(pdo.cob_id, bytes(pdo.data))
@@ -520,26 +541,40 @@ class VectorStepDrive(Cia402Drive, InterpolatingDrive):
         cache keeps it, and the others' only tells whether their burst is complete. A TxPDO2..4
         of an older state is still newer than the cache, except after _wait_for_burst read its
         objects by SDO for the newest state: then it is dropped until its own TxPDO of that
-        state comes."""
+        state comes.
+
+        Not so the position of a standing axis: a TxPDO2 with the newest statusword may still
+        be older than it (the standstill before a move shorter than the bus' delay has the
+        statusword of its end). Once _standing_position has read it by SDO for that statusword,
+        a TxPDO2 leaves it as read; one that shows another position with that statusword has
+        it read again at the next poll (it is older, or the axis was moved: an encoder)."""
         layout, indexes = self._tpdo_layouts[cob]
         fields = layout.unpack_from(data)     # (the bus checked the frame's length)
         sw = fields[0]
-        self._pdo_statusword[cob] = sw
-        newest = self._pdo_statusword.get(self._state_cob, sw)
-        if cob == self._state_cob:
-            if sw != self._statusword_seen[0]:
-                self._statusword_seen = (sw, time.monotonic())
-                self._sdo_read.clear()
-        elif cob in self._sdo_read:
-            if sw != newest:
-                return
-            self._sdo_read.discard(cob)
-        values = self._values()
-        for index, value in zip(indexes, fields):
-            values[index] = value
-        values[vm.STATUSWORD] = newest
-        if cob == self._position_cob:              # statusword, then the position (i32)
-            self._position_rx = (time.monotonic(), fields[1])
+        now = time.monotonic()
+        with self._rx_lock:
+            self._pdo_statusword[cob] = sw
+            newest = self._pdo_statusword.get(self._state_cob, sw)
+            if cob == self._state_cob:
+                if sw != self._statusword_seen[0]:
+                    self._statusword_seen = (sw, now, self._statusword_seen[2] + 1)
+                    self._sdo_read.clear()
+            elif cob in self._sdo_read:
+                if sw != newest:
+                    return
+                self._sdo_read.discard(cob)
+            values = self._values()
+            standing = self._standing
+            if cob == self._position_cob and standing is not None and \
+                    standing[0] == self._statusword_seen[2]:
+                if sw == newest and fields[1] != standing[1]:
+                    self._standing = None
+                fields = (sw, standing[1])        # statusword, then the position (i32)
+            elif cob == self._position_cob:
+                self._position_rx = (now, fields[1])
+            for index, value in zip(indexes, fields):
+                values[index] = value
+            values[vm.STATUSWORD] = newest
 
     def _coherent(self) -> bool:
         return len(set(self._pdo_statusword.values())) <= 1
@@ -549,8 +584,8 @@ class VectorStepDrive(Cia402Drive, InterpolatingDrive):
         frames is in, the others hold values from before the change (velocity, Rstsflg's homed
         bit, the position after homing): wait for them, as long as the bus needs to carry them
         at its bit rate, so one snapshot is coherent."""
-        newest, since = self._statusword_seen
-        if self._coherent() or newest == self._burst_given_up:
+        newest, since, number = self._statusword_seen
+        if self._coherent() or number == self._burst_given_up:
             return
         bound_s = len(vm.DRIVER_TPDOS) * max(self.can.drive_count, 1) * FRAME_BITS \
             / self.can.bitrate + BURST_SLACK_S + self.inhibit_100us * 1e-4
@@ -560,7 +595,7 @@ class VectorStepDrive(Cia402Drive, InterpolatingDrive):
             # snapshot holds nothing older than its statusword (a position from before a
             # "target reached" would end a move_to at the wrong place). Then no poll waits
             # again until the next change.
-            self._burst_given_up = newest
+            self._burst_given_up = number
             late = sorted(c for c, sw in self._pdo_statusword.items() if sw != newest)
             logger.info('%sTxPDO burst of statusword 0x%04X incomplete after %.3f s (late: %s):'
                         ' reading their objects by SDO', self._prefix(), newest, bound_s,
@@ -568,9 +603,16 @@ class VectorStepDrive(Cia402Drive, InterpolatingDrive):
             values = self._values()
             for cob in late:
                 for index, sub, _bits in self._tpdo_entries.get(cob, ()):
-                    if index != vm.STATUSWORD:
-                        yield 0.0
-                        value = self.link.read(index, sub)
+                    if index == vm.STATUSWORD or (index == vm.POSITION_ACTUAL_VALUE and
+                                                  self._standing_for(number)):
+                        continue
+                    yield 0.0
+                    value = self.link.read(index, sub)
+                    with self._rx_lock:
+                        if index == vm.POSITION_ACTUAL_VALUE and \
+                                not newest & vm.SW_BIT_MOTOR_MOVING and \
+                                self._stand(number, int(value)):
+                            continue            # read after the statusword of a standstill
                         # the late TxPDO itself came during the upload: its values are as new
                         # (an older upload written over them would stay until the next change)
                         if self._pdo_statusword.get(cob) != newest:
@@ -578,22 +620,66 @@ class VectorStepDrive(Cia402Drive, InterpolatingDrive):
                             if index == vm.POSITION_ACTUAL_VALUE:
                                 # true when its answer came, not at every later poll
                                 self._position_rx = (time.monotonic(), int(value))
-                if self._statusword_seen[0] == newest and self._pdo_statusword.get(cob) != newest:
-                    self._sdo_read.add(cob)   # its frames of older states are older than this
+                with self._rx_lock:
+                    if self._statusword_seen[2] == number and \
+                            self._pdo_statusword.get(cob) != newest:
+                        self._sdo_read.add(cob)   # its frames of older states are older
+
+    def _standing_for(self, number: int) -> bool:
+        """The position of statusword `number` (a standstill) was read after it came."""
+        standing = self._standing
+        return standing is not None and standing[0] == number
+
+    def _stand(self, number: int, position: int) -> bool:
+        """(_rx_lock held) 0x6064 read by SDO after statusword `number` came, which says the
+        axis stands: its position while it stands, unless a newer statusword came meanwhile
+        (the answer may be of that one, moving again)."""
+        if self._statusword_seen[2] != number:
+            return False
+        self._standing = (number, position)
+        self._values()[vm.POSITION_ACTUAL_VALUE] = position
+        self._position_rx = (time.monotonic(), position)
+        return True
+
+    def _standing_position(self) -> Steps[None]:
+        """The position of a standing axis (statusword bit 8 "Motor moving" off, [STATUSWORD]),
+        read by SDO after the statusword came, once per statusword (and command, see
+        _write_controlword): the position a move_to, a homing or a trajectory ends on.
+
+        No TxPDO can tell it: a standing drive repeats one statusword, so the TxPDO2 of the
+        standstill before a move that is shorter than the bus' delay (a slow or busy bus:
+        TxPDO2..4 come after TxPDO1) carries the statusword of the move's end with the
+        position the move started from, and the order in which frames come in tells nothing
+        of when they were sampled. An SDO answer does: the drive sends it after the TxPDO1 of
+        the statusword it has then (TxPDO1 is sent at the change, and its COB-ID wins the
+        arbitration against the answer's), so while no newer TxPDO1 came before the answer,
+        the answer is of that statusword (`_stand`)."""
+        sw, _, number = self._statusword_seen
+        if sw & vm.SW_BIT_MOTOR_MOVING or self._standing_for(number):
+            return
+        yield 0.0
+        value = int(self.link.read(vm.POSITION_ACTUAL_VALUE, 0))
+        with self._rx_lock:
+            self._stand(number, value)
 
     def _seed(self) -> Steps[None]:
-        """Current values by SDO, so the cache is right before the first TxPDO arrives."""
+        """Current values by SDO, so the cache is right before the first TxPDO arrives (the
+        position 0x6064 after the statusword 0x6041: a standing axis' position is known)."""
         values = self._values()
         for index, sub, _bits in sorted({e for pdo in vm.DRIVER_TPDOS for e in pdo}):
             yield 0.0
             values[index] = self.link.read(index, sub)
         sw = int(values[vm.STATUSWORD])
-        self._pdo_statusword = {pdo.cob_id: sw for pdo in self.link.node.tpdo.values()
-                                if pdo.enabled}
-        self._statusword_seen = (sw, time.monotonic())
-        self._burst_given_up = None
-        self._sdo_read.clear()
-        self._position_rx = None
+        with self._rx_lock:
+            self._pdo_statusword = {pdo.cob_id: sw for pdo in self.link.node.tpdo.values()
+                                    if pdo.enabled}
+            number = self._statusword_seen[2] + 1
+            self._statusword_seen = (sw, time.monotonic(), number)
+            self._burst_given_up = None
+            self._sdo_read.clear()
+            self._position_rx = None
+            self._standing = None if sw & vm.SW_BIT_MOTOR_MOVING else \
+                (number, int(values[vm.POSITION_ACTUAL_VALUE]))
 
     def close(self) -> None:
         """Orderly end (the node shuts down): disarm the drive-side watchdogs, so that a drive
@@ -639,14 +725,17 @@ class VectorStepDrive(Cia402Drive, InterpolatingDrive):
         not count as a change (RemoteDrive.changes). While the link counted no change, this
         driver commanded nothing (controlword, homing) and the heartbeat's deadline is ahead,
         the poll is that look (`unchanged_until`); else the liveness checks and the snapshot key.
-        Step-wise only while a burst is incomplete, a fault is read, or a warning is due."""
+        Step-wise only while a burst is incomplete, a fault is read, a warning is due, or the
+        position of an axis that stands is read (_standing_position)."""
         state = self._snapshot[1]
         if state is not None and self.unchanged_until(state):
             return state
         self._quiet = None
         changes = self.link.changes              # before what it vouches for
         self._check_alive()
-        if self._snapshot_key() == self._snapshot[0]:
+        with self._rx_lock:
+            key = self._snapshot_key()
+        if key == self._snapshot[0]:
             self._quiet = (changes, self.cia.controlword, self._homing, self._snapshot[1])
             self._alive_until = self._heartbeat_deadline()
             return self._snapshot[1]
@@ -674,12 +763,14 @@ class VectorStepDrive(Cia402Drive, InterpolatingDrive):
         return (self._connected_at if at is None else at) + self.heartbeat_timeout_s
 
     def _snapshot_key(self) -> tuple:
-        """What a snapshot is made of, read before it (so a change meanwhile makes the next
-        key differ): the cached objects, EMCY, homing and the controlword; the position's
+        """(_rx_lock held) What a snapshot is made of, read before it (so a change meanwhile
+        makes the next key differ): the statusword and its number (an equal value is not the
+        same statusword: the end of a move is the standstill before it again), the standing
+        position, the cached objects, EMCY, homing and the controlword; the position's
         reception time only while moving (measured_at_s)."""
         values = self._values()
-        sw = self._read_statusword()
-        return (sw, values.get(vm.MODES_OF_OPERATION_DISPLAY),
+        sw, _, number = self._statusword_seen
+        return (sw, number, self._standing, values.get(vm.MODES_OF_OPERATION_DISPLAY),
                 values.get(vm.RSTSFLG), values.get(vm.POSITION_ACTUAL_VALUE),
                 values.get(vm.VELOCITY_ACTUAL_VALUE), values.get(vm.ERROR_REGISTER),
                 self.link.emcy_count, self.link.emcy, self._homing, self._cw,
@@ -687,21 +778,32 @@ class VectorStepDrive(Cia402Drive, InterpolatingDrive):
 
     def _read_state_steps(self) -> Steps[DriveState]:
         yield from self._wait_for_burst()
-        changes = self.link.changes
-        key = self._snapshot_key()
-        values = self._values()
-        sw = self._read_statusword()
+        for _ in range(STANDING_READS):
+            yield from self._standing_position()
+            changes = self.link.changes
+            with self._rx_lock:           # one statusword with the values of its snapshot
+                key = self._snapshot_key()
+                sw, _, number = self._statusword_seen
+                values = dict(self._values())
+                standing = self._standing if self._standing_for(number) else None
+                # a statusword that came after _wait_for_burst: its burst is waited for at
+                # the next poll
+                waited = self._coherent() or number == self._burst_given_up
+            if standing is not None or sw & vm.SW_BIT_MOTOR_MOVING:
+                break
         mode = int(values.get(vm.MODES_OF_OPERATION_DISPLAY, 0))
         rstsflg = int(values.get(vm.RSTSFLG, 0))
         position = int(values.get(vm.POSITION_ACTUAL_VALUE, 0))
         velocity = int(values.get(vm.VELOCITY_ACTUAL_VALUE, 0))
         error_register = int(values.get(vm.ERROR_REGISTER, 0))
+        if standing is not None:
+            position = standing[1]
         state = cia402.decode_state(sw)
         fault = state in (State.FAULT, State.FAULT_REACTION_ACTIVE)
         code, text, alarms = (yield from self._fault()) if fault else (0, '', ())
         if not fault:
             self._fault_cache = None
-        homing = self._homing_state(sw, mode)
+        homing = self._homing_state(sw, mode, standing is not None)
         extra: list[str] = list(alarms)
         if sw & cia402.SW_BIT_WARNING:
             extra += self._read_warnings()
@@ -716,10 +818,14 @@ class VectorStepDrive(Cia402Drive, InterpolatingDrive):
         mode_text = vm.MODE_NAMES.get(mode, f'mode {mode}')
         if mode == vm.MODE_INTERPOLATED and sw & vm.SW_BIT_IP_ACTIVE:
             mode_text += ' (IP active)'
-        moving = bool(sw & vm.SW_BIT_MOTOR_MOVING)
         # Bit 8 ("Motor moving", theoretical) off means the profile velocity is zero; TxPDO3
         # may still hold the last speed of a stop whose burst was given up.
-        velocity_hz = vm.hz_from_rps100(velocity, self.steps_per_rev) if moving else 0.0
+        velocity_hz = vm.hz_from_rps100(velocity, self.steps_per_rev) \
+            if sw & vm.SW_BIT_MOTOR_MOVING else 0.0
+        # Standing only with the position read after the statusword that says so
+        # (_standing_position): what a move_to, a homing and a trajectory end on. A newer
+        # statusword came during each of its reads: not shown standing until the next poll.
+        moving = standing is None
         snapshot = DriveState(
             state=state, enabled=state == State.OPERATION_ENABLED,
             moving=moving,
@@ -728,8 +834,10 @@ class VectorStepDrive(Cia402Drive, InterpolatingDrive):
             fault_code=code, fault_text=text, alarms=tuple(extra),
             mode=mode_text, status_word=sw, position_steps=position, velocity_steps_s=velocity_hz,
             measured_at_s=self._position_measured_at_s(position, moving))
-        # a fault or a warning is read again (SDO) at its own pace: never from the last snapshot
-        keyed = not fault and not sw & cia402.SW_BIT_WARNING
+        # a fault or a warning is read again (SDO) at its own pace, a standstill not yet shown
+        # and a burst not yet waited for at the next poll: never from the last snapshot
+        keyed = waited and not fault and not sw & cia402.SW_BIT_WARNING and \
+            (standing is not None or bool(sw & vm.SW_BIT_MOTOR_MOVING))
         self._snapshot = (key if keyed else None), snapshot
         self._quiet = (changes, self.cia.controlword, self._homing, snapshot) if keyed else None
         self._alive_until = self._heartbeat_deadline()
@@ -747,11 +855,13 @@ class VectorStepDrive(Cia402Drive, InterpolatingDrive):
             return None
         return rx[0]
 
-    def _homing_state(self, sw: int, mode: int) -> HomingState:
+    def _homing_state(self, sw: int, mode: int, standing: bool) -> HomingState:
         """AEC homing bits: 12 "Home eseguito", 13 "Errore in azzeramento" ([STATUSWORD]).
 
         Unlike the CiA table, attained does not wait for bit 10: the manual ties no meaning to
-        bit 10 during homing.
+        bit 10 during homing. It waits for the axis to stand (bit 8 "Motor moving" off) with
+        its position read after that statusword (`standing`): the position homing ends on (a
+        zero search faster than the start/stop speed stops past the home point).
         """
         if self._homing != HomingState.RUNNING:
             return self._homing
@@ -759,7 +869,8 @@ class VectorStepDrive(Cia402Drive, InterpolatingDrive):
             if sw & vm.SW_BIT_HOMING_ERROR:
                 self._homing = HomingState.ERROR
             elif sw & vm.SW_BIT_HOMING_ATTAINED:
-                self._homing = HomingState.ATTAINED
+                if standing:
+                    self._homing = HomingState.ATTAINED
             elif not sw & vm.SW_BIT_MOTOR_MOVING and sw & cia402.SW_BIT_TARGET_REACHED and \
                     not self._cw & CW_BIT_NEW_SET_POINT:
                 self._homing = HomingState.IDLE       # interrupted
@@ -1196,6 +1307,7 @@ class VectorStepDrive(Cia402Drive, InterpolatingDrive):
             data = pack(rtype.name, rtype.check(int(value)))
         self.link.download(index, sub, data)
         self._written.pop((index, sub), None)
+        self._standing = None      # a register may set the position: read again at the next poll
 
 
 # ---------------------------------------------------------------------------- vendor
