@@ -110,6 +110,8 @@ class DriveHandle:
         # (steps, slot, slot.submitted, slot.reconnects) of the last target the drive confirmed
         # (set by the owner thread in one assignment, read by the command thread): see _holds
         self.held_target: tuple | None = None
+        # (that tuple, the job's future) of the last position job submitted (command thread)
+        self.pending_target: tuple | None = None
         self.stream_t = -math.inf          # time.monotonic() of the last joint_command position
 
     @property
@@ -411,7 +413,9 @@ class DriveNode(Node):
         if not h.connected:
             self.refuse(h, f'{what}: drive is DISCONNECTED')
 
-    def _check_ready(self, h: DriveHandle, what: str) -> None:
+    def _check_ready(self, h: DriveHandle, what: str, taken: bool = True) -> None:
+        """`taken`: the command passed its last check here, which ends a run of refusals
+        (False: a check follows, which ends it itself)."""
         self.check_link(h, what)
         if h.state.fault:
             self.refuse(h, f'{what}: drive is in FAULT 0x{h.state.fault_code:04X} '
@@ -419,7 +423,8 @@ class DriveNode(Node):
         if not h.state.enabled:
             self.refuse(h, f'{what}: drive is not enabled (state {h.state.state.value}); '
                            'call enable first')
-        h.refusal_logged = ''         # taken: the next refusal is news
+        if taken:
+            h.refusal_logged = ''     # taken: the next refusal is news
 
     def _check_finite(self, h: DriveHandle, what: str, value: float) -> None:
         if not math.isfinite(value):
@@ -440,7 +445,8 @@ class DriveNode(Node):
                            f'more than {parameter} ({bound_s:g} s): its age cannot be told; '
                            'synchronise the clocks of the hosts (chrony, PTP)')
 
-    def check_position(self, h: DriveHandle, what: str, position: float) -> int:
+    def check_position(self, h: DriveHandle, what: str, position: float,
+                       taken: bool = True) -> int:
         self._check_finite(h, what, position)
         lo, hi = h.param('min_position'), h.param('max_position')
         if not lo <= position <= hi:
@@ -449,7 +455,7 @@ class DriveNode(Node):
         steps = h.conv.to_steps(position)
         if not math.isfinite(steps) or abs(steps) >= 2 ** 63:
             self.refuse(h, f'{what} {position} is {steps:g} steps: beyond any drive position')
-        self._check_ready(h, f'{what} {position}')
+        self._check_ready(h, f'{what} {position}', taken)
         return h.conv.to_steps_int(position)
 
     def _job_failed(self, h: DriveHandle, what: str, fut: concurrent.futures.Future) -> None:
@@ -483,9 +489,10 @@ class DriveNode(Node):
             self._check_age(h, f'{what} {position}', age_s,
                             self.bus_params['position_command_max_age_s'],
                             'position_command_max_age_s')
-            steps = self.check_position(h, what, position)
+            steps = self.check_position(h, what, position, taken=not stream)
             if stream:
                 self._check_start(h, what, position)
+                h.refusal_logged = ''     # taken: the next refusal is news
         except CommandRefused:
             return
         if stream:
@@ -496,6 +503,7 @@ class DriveNode(Node):
         fut = h.sup.submit(h.name, Command.position_stream(
             lambda: h.drive.move_to(steps, motion), f'{what} {position}'), hand_over=True)
         target = (steps, h.slot, getattr(fut, 'submitted', None), h.slot.reconnects)
+        h.pending_target = (target, fut)
         fut.add_done_callback(lambda f: self._position_done(h, f'{what} {position}', f, target))
 
     def _check_start(self, h: DriveHandle, what: str, position: float) -> None:
@@ -513,10 +521,18 @@ class DriveNode(Node):
                            f'({bound:g}): not sent; command the joint from where it stands')
 
     def _holds(self, h: DriveHandle, steps: int) -> bool:
-        """The drive took this very target (its move_to confirmed), nothing was submitted for
-        it since, it did not reconnect, and its snapshot shows it moving or standing on it."""
-        held, slot = h.held_target, h.slot
-        if held is None or held != (steps, slot, slot.submitted, slot.reconnects):
+        """Sending `steps` again would change nothing: nothing was submitted for the drive
+        since the last job that sent this very target, the drive did not reconnect since, and
+        that job is still on its way (queued or running: it carries the target), or the drive
+        confirmed it and its snapshot shows it moving or standing on it. A set point stream
+        faster than a move's transactions (100 Hz on a serial line) thus sends a held target
+        once, not once per message."""
+        slot = h.slot
+        now = (steps, slot, slot.submitted, slot.reconnects)
+        pending = h.pending_target
+        if pending is not None and pending[0] == now and not pending[1].done():
+            return True
+        if h.held_target != now:
             return False
         state = slot.state
         return state.moving or abs(state.position_steps - steps) <= 1
