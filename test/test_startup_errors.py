@@ -67,7 +67,8 @@ def test_a_params_file_for_another_node_is_named_as_such(procs, vendor, other):
     assert start_up_output(procs, 'stepper_drivers', exe, '--params-file',
                            str(CONFIG / f'{other}.yaml')) == [
         f'{exe}: parameter drives: not set, and no parameter is given for node /{exe} (a params '
-        f'file configures the node named by its top-level key: {exe}: or /**:)']
+        f'file configures the node named by its top-level key: {exe}: in the root namespace, '
+        f'/**/{exe}: in any, or /**:)']
 
 
 def test_a_baud_rate_the_rd4_does_not_have_is_named(procs):

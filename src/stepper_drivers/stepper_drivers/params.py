@@ -163,10 +163,21 @@ def given_parameters(args: Sequence[str], node: Node) -> dict[str, Any]:
             parsed = text
         entries.setdefault('/' + target.strip('/') if target else '/**', {})[name] = parsed
     given: dict[str, Any] = {}
+    fqn = node.get_fully_qualified_name()
     for key, values in entries.items():
-        if key in ('/**', node.get_fully_qualified_name()):
+        if _node_key_matches(key, fqn):
             given.update(values)
     return given
+
+
+def _node_key_matches(key: str, fqn: str) -> bool:
+    """Whether a params file's node key applies to the node `fqn`, as rcl matches it: a key
+    without a leading slash is in the root namespace, `/*` stands for one name and `/**` for
+    any number of them (`/**/xplus_mt_node` is that node in any namespace)."""
+    if key in ('/**', fqn):
+        return True
+    pattern = re.escape(key).replace(r'/\*\*', '(?:/[^/]+)*').replace(r'/\*', '/[^/]+')
+    return re.fullmatch(pattern, fqn) is not None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -438,7 +449,8 @@ def declare_all(node: Node, vendor: Vendor, args: Sequence[str] = (),
         raise ParameterError(
             f'parameter drives: not set, and no parameter is given for node '
             f'{node.get_fully_qualified_name()} (a params file configures the node named by its '
-            f'top-level key: {node.get_name()}: or /**:)')
+            f'top-level key: {node.get_name()}: in the root namespace, '
+            f'/**/{node.get_name()}: in any, or /**:)')
     for problem in drives_list_errors(drive_names):
         raise ParameterError(problem)
     values = {}

@@ -94,7 +94,8 @@ def test_a_params_file_for_another_node_says_so(tmp_path):
     """A params file of another vendor: rd4_node started with config/xplus_mt.yaml."""
     with pytest.raises(ParameterError, match=r'parameter drives: not set, and no parameter is '
                        r'given for node /n \(a params file configures the node named by its '
-                       r'top-level key: n: or /\*\*:\)'):
+                       r'top-level key: n: in the root namespace, /\*\*/n: in any, or '
+                       r'/\*\*:\)'):
         declare_from(tmp_path, GOOD.replace('n:', 'other_node:', 1))
 
 
@@ -179,6 +180,14 @@ ORDERS = [
     (GOOD, ('-p', 'port:=7', '-p', 'n:port:=8')),
     (GOOD, ('-p', 'n:port:=8', '-p', 'port:=7')),
     (GOOD.replace('n:', '/n:', 1), ('-p', 'other:port:=9', '-p', 'drives.axis1.unit_id:=5')),
+    # a node in a namespace: a plain key is the root namespace's node; /**/n and /*/n and
+    # /cell1/n are this one
+    (GOOD, ('-r', '__ns:=/cell1')),
+    (GOOD.replace('n:', '/**/n:', 1), ('-r', '__ns:=/cell1')),
+    (GOOD.replace('n:', '/*/n:', 1), ('-r', '__ns:=/cell1')),
+    (GOOD.replace('n:', '/cell1/n:', 1) + WILD, ('-r', '__ns:=/cell1')),
+    (GOOD.replace('n:', '/cell2/n:', 1), ('-r', '__ns:=/cell1')),
+    (GOOD.replace('n:', '/**/n:', 1), ()),
 ]
 
 
