@@ -621,3 +621,118 @@ def test_owner_thread_priority_runs_the_bus_owner_on_sched_fifo(procs, ros, tmp_
     bench.command('axis1', 'position_command', 1.0)
     bench.status('axis1', lambda m: not m.moving and abs(m.position - 1.0) < 1e-3,
                  what='axis1 at 1.0 rad')
+
+
+class LateControlword:
+    """An X-PLUS MT that takes a controlword a while after it acknowledged it: a TCP relay
+    between the node and the simulator that, once armed, answers the next write of the
+    controlword (1040) with bit 4 set as the drive does (FC06: the echo of the request) and hands
+    that write to the simulator `lag_s` later, over a connection of its own (pymodbus); every
+    other request and reply passes unchanged. The node sees a drive whose statusword shows the
+    previous homing for lag_s after the homing's start edge."""
+
+    def __init__(self, upstream_port, lag_s):
+        import socket
+        import threading
+        self.upstream_port, self.lag_s = upstream_port, lag_s
+        self.armed = threading.Event()
+        self.taken_at = None               # time.monotonic() the simulator got the late write
+        self._listener = socket.create_server(('127.0.0.1', 0))
+        self.port = self._listener.getsockname()[1]
+        self._threading, self._socket = threading, socket
+        threading.Thread(target=self._accept, daemon=True).start()
+
+    def _accept(self):
+        while True:
+            try:
+                client, _ = self._listener.accept()
+            except OSError:
+                return                     # closed
+            try:
+                upstream = self._socket.create_connection(('127.0.0.1', self.upstream_port()))
+            except OSError:
+                client.close()
+                continue
+            for pump in (self._requests, self._replies):
+                self._threading.Thread(target=pump, args=(client, upstream), daemon=True).start()
+
+    def _requests(self, client, upstream):
+        buf = b''
+        try:
+            while chunk := client.recv(260):
+                buf += chunk
+                while len(buf) >= 7 and len(buf) >= 6 + int.from_bytes(buf[4:6], 'big'):
+                    end = 6 + int.from_bytes(buf[4:6], 'big')
+                    frame, buf = buf[:end], buf[end:]
+                    function, address, value = frame[7], frame[8:10], frame[10:12]
+                    if self.armed.is_set() and function == 6 and \
+                            int.from_bytes(address, 'big') == 1040 and value[1] & 0x10:
+                        self.armed.clear()
+                        client.sendall(frame)                   # FC06's reply: the echo
+                        self._threading.Timer(self.lag_s, self._write, (
+                            frame[6], int.from_bytes(value, 'big'))).start()
+                    else:
+                        upstream.sendall(frame)
+        except OSError:
+            pass
+        finally:
+            client.close()
+            upstream.close()
+
+    @staticmethod
+    def _replies(client, upstream):
+        try:
+            while chunk := upstream.recv(260):
+                client.sendall(chunk)
+        except OSError:
+            pass
+
+    def _write(self, unit, value):
+        from pymodbus.client import ModbusTcpClient
+        mb = ModbusTcpClient('127.0.0.1', port=self.upstream_port(), timeout=1.0, retries=0)
+        try:
+            assert mb.connect()
+            assert not mb.write_register(1040, value, device_id=unit).isError()
+            self.taken_at = time.monotonic()
+        finally:
+            mb.close()
+
+    def close(self):
+        self._listener.close()
+
+
+def test_a_homing_the_drive_shows_late_is_answered_by_its_own_end(procs, ros, tmp_path):
+    """A homing after another one and a move: the drive still shows the first homing's result
+    (ATTAINED, homing mode) when the start edge is written, and acknowledges that write, but
+    runs the new homing only a moment later (here 0.6 of the driver's start check's time:
+    still in it). `home` answers once this homing ended (at the home position), from
+    snapshots after its start, and not with the position the axis was leaving ("homed at -1"),
+    which would let a caller move an axis that is still homing."""
+    from stepper_drivers.vendors.xplus_mt import XplusMtDrive
+
+    class Lagging(Bench):
+        def __init__(self, procs, ros, tmp_path):
+            self.relay = LateControlword(lambda: self.port,
+                                         0.6 * XplusMtDrive.HANDSHAKE_TIMEOUT_S)
+            super().__init__(procs, ros, tmp_path, node_args=('-p', f'port:={self.relay.port}'))
+
+    bench = Lagging(procs, ros, tmp_path)
+    try:
+        bench.enable('axis1')
+        r = bench.call('axis1', 'home')
+        assert r.success and r.message.startswith('axis1: homed at 0 '), r.message
+        r = bench.move_to('axis1', -1.0)
+        assert r.success, r.message
+        status = f'{bench.node_ns}/axis1/status'
+        bench.relay.armed.set()
+        r = bench.call('axis1', 'home')
+        answered_at = time.monotonic()
+        with bench.ros.lock:
+            st = bench.ros.latest[status]           # what the client had by the answer
+        assert not bench.relay.armed.is_set(), 'the start edge did not go through the relay'
+        assert r.success and r.message.startswith('axis1: homed at 0 '), r.message
+        assert bench.relay.taken_at is not None and bench.relay.taken_at < answered_at
+        assert st.homing_state == 'ATTAINED' and st.position == pytest.approx(0.0, abs=1e-3), st
+        assert abs(bench.fresh_true_steps('axis1')) < 1
+    finally:
+        bench.relay.close()

@@ -22,7 +22,7 @@ from typing import Any, Mapping, TypeVar
 from . import cia402
 from .cia402 import CW_BIT_NEW_SET_POINT, FAULT_STATES
 from .cia402_modes import HomingMode, Mode
-from .drive import Bus, Drive, DriveError, State, Steps, is_steps
+from .drive import Bus, Drive, DriveError, HomingState, State, Steps, is_steps
 
 T = TypeVar('T')
 
@@ -72,6 +72,10 @@ class Cia402Drive(Drive):
                                        min_delay_s=self.CW_SW_DELAY_S, name=name)
         self.cia.POLL_S = self.STATUSWORD_POLL_S
         self.modes: dict[int, Mode] = {mode.code: mode for mode in self.MODES}
+        # What the statusword last showed of homing (bits 13/12/10) in homing mode before a
+        # homing start edge, as the vendor's start_homing read it (None: not read): a result it
+        # still shows after the edge may be the previous homing's (_homing_started).
+        self._homing_shown_before: HomingState | None = None
 
     # ------------------------------------------------------------------ object access
     @abc.abstractmethod
@@ -198,11 +202,23 @@ class Cia402Drive(Drive):
         self.cia.write(base_cw | bits)
 
     def _homing_started(self, mode: HomingMode) -> None | Steps[None]:
-        """After the homing start edge: wait until the statusword no longer says "not started"
-        (bits 13/12/10, `mode.started`); DriveError when it still does after
-        HANDSHAKE_TIMEOUT_S."""
-        met, sw = yield from self.cia.wait_for(mode.started, self.HANDSHAKE_TIMEOUT_S)
-        if not met:
+        """After the homing start edge: wait until the statusword shows this homing (bits
+        13/12/10, `mode.state`): running or failed, or attained where the drive did not show
+        ATTAINED before the edge (`_homing_shown_before`). The previous homing's ATTAINED,
+        which a drive may show for a while after the edge before it runs, is no start: the
+        homing would be answered done while the axis still runs it. Still "not started" after
+        HANDSHAKE_TIMEOUT_S: DriveError. ATTAINED all that time where it showed ATTAINED before
+        (or nothing is known): a homing that ended where it began before the drive could show
+        it running (the manual's statusword delay, CW_SW_DELAY_S, is far shorter), taken as
+        done."""
+        before = self._homing_shown_before
+
+        def this_homing(sw: int) -> bool:
+            state = mode.state(sw)
+            return state in (HomingState.RUNNING, HomingState.ERROR) or (
+                state == HomingState.ATTAINED and before not in (HomingState.ATTAINED, None))
+        met, sw = yield from self.cia.wait_for(this_homing, self.HANDSHAKE_TIMEOUT_S)
+        if not met and mode.state(sw) != HomingState.ATTAINED:
             raise DriveError(f'home: homing did not start (status word bits 13/12/10 still '
                              f'"not started"): {cia402.describe(sw)}')
 

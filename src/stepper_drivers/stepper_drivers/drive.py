@@ -125,6 +125,11 @@ class DriveState:
     # earlier than the end of the poll (a TxPDO held back by its inhibit time); None: the poll.
     # Not part of equality: a snapshot with the same values is no change (status on change).
     measured_at_s: float | None = dataclasses.field(default=None, compare=False)
+    # Set by the bus owner, not by drives: its count of the writes to this drive (jobs started
+    # and ended, supervisor.Slot.write_seq) when the read that gave this snapshot began; the
+    # snapshot follows every write up to that count. A later read that returns this same object
+    # (its values unchanged) sets it again. Not part of equality.
+    after_write: int = dataclasses.field(default=0, compare=False)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -636,12 +636,16 @@ class DriveNode(Node):
                              'earlier commands')
         return fut.result()
 
-    async def published(self, *handles: DriveHandle, timeout_s: float = 2.0) -> bool:
-        """Await the next snapshot of each drive and its publication: /joint_states and the
-        drive's status that carry it have gone out (False: no snapshot within timeout_s, or
-        the link is lost). The drive is polled at once, and its snapshot published at once. A
-        service or action that changed a drive answers after this, so a client that reads
-        /joint_states after the answer sees the change."""
+    async def published(self, *handles: DriveHandle, timeout_s: float = 2.0,
+                        after: int | None = None) -> bool:
+        """Await the next snapshot of each drive that followed its writes, and its publication:
+        /joint_states and the drive's status that carry it have gone out (False: no such
+        snapshot within timeout_s, or the link is lost). `after`: the least write count of
+        that snapshot (DriveState.after_write; a job's future has the count at its end); None:
+        every write to the drive so far. The drive is polled at once, and its snapshot
+        published at once. A service or action that changed a drive answers after this, so a
+        client that reads /joint_states after the answer sees the change, never a snapshot
+        whose read went out before it."""
         futs = []
         for h in handles:
             fut: concurrent.futures.Future = concurrent.futures.Future()
@@ -652,7 +656,7 @@ class DriveNode(Node):
                     self.publishing.publish_states(h.sup)   # now, not at the end of the cycle
                 else:
                     settle(fut, False)
-            h.sup.wait_poll(h.name, timeout_s, polled)
+            h.sup.wait_poll(h.name, timeout_s, polled, after_write=after)
             h.sup.poll_soon(h.name)
             # no cycle within twice timeout_s (the bus shuts down: at once): not published
             remove_timer = h.sup.after(2 * timeout_s, lambda fut=fut: settle(fut, False))

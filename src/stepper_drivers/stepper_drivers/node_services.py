@@ -6,6 +6,11 @@ latest snapshot (the node's `check_link`, `check_position`, `refuse`), enqueues 
 bus owner and `await`s its result, then the polls it needs, without holding an executor thread,
 so one SingleThreadedExecutor serves the node and a stop is never queued behind a homing. A
 service or action that changed a drive answers once the change is published (`published`).
+
+An answer is judged only by snapshots that followed its own writes: the job's future carries
+the drive's write count at its end (supervisor.py, snapshot provenance), and a snapshot counts
+for the answer only when its `after_write` is at least that (`_command`, `_since`). A snapshot
+whose read went out before the command (a poll under way while it ran) is no answer to it.
 """
 
 from __future__ import annotations
@@ -19,7 +24,7 @@ from stepper_drivers_msgs.action import Home, MoveTo
 from stepper_drivers_msgs.srv import ReadRegister, WriteRegister
 
 from .commands import Command, CommandRefused, JobKind
-from .drive import DriveError, HomingState, RefusedError
+from .drive import DriveError, DriveState, HomingState, RefusedError
 from .supervisor import Cancelled
 
 if TYPE_CHECKING:
@@ -71,21 +76,39 @@ class DriveServices:
                      callback_group=node.srv_group)
 
     # ------------------------------------------------------------------------ awaiting a drive
-    async def _next_poll(self, h: 'DriveHandle', timeout_s: float = 2.0) -> bool:
-        """Await the next snapshot of h (False: none within timeout_s, or the link is lost).
-        Raises Cancelled once the node shuts down: a service or action waiting for its drive
-        then answers, rather than loop on polls that will not come."""
+    async def _next_poll(self, h: 'DriveHandle', after: int, timeout_s: float = 2.0) -> bool:
+        """Await the next snapshot of h that followed write number `after` (False: none within
+        timeout_s, or the link is lost). Raises Cancelled once the node shuts down: a service
+        or action waiting for its drive then answers, rather than loop on polls that will not
+        come."""
         fut: concurrent.futures.Future = concurrent.futures.Future()
-        h.sup.wait_poll(h.name, timeout_s, fut.set_result)
+        h.sup.wait_poll(h.name, timeout_s, fut.set_result, after_write=after)
         fresh = await self.node.await_future(fut)
         if not fresh and h.sup.stopping:
             raise Cancelled('the node is shutting down')
         return fresh
 
     async def _run_job(self, h: 'DriveHandle', command: Command) -> Any:
-        return await self.node.await_future(
-            h.sup.submit(h.name, command, hand_over=command.kind == JobKind.URGENT),
-            sup=h.sup, timeout_s=JOB_TIMEOUT_S)
+        return (await self._command(h, command))[0]
+
+    async def _command(self, h: 'DriveHandle', command: Command) -> tuple[Any, int]:
+        """Run `command` on h's drive: (its result, the drive's write count at its end: what
+        a snapshot must follow to tell what the command did)."""
+        fut = h.sup.submit(h.name, command, hand_over=command.kind == JobKind.URGENT)
+        result = await self.node.await_future(fut, sup=h.sup, timeout_s=JOB_TIMEOUT_S)
+        return result, fut.after_write
+
+    @staticmethod
+    def _since(h: 'DriveHandle', after: int) -> DriveState | None:
+        """h's snapshot when it followed write number `after`, else None (what the drive
+        did since is not known yet)."""
+        state = h.state
+        return state if state.after_write >= after else None
+
+    def _state_text(self, h: 'DriveHandle', after: int) -> str:
+        state = self._since(h, after)
+        return state.state.value if state is not None else \
+            'state not known yet (no snapshot of the drive since the command)'
 
     async def _respond(self, h: 'DriveHandle', resp, work, ok_message: Callable[[Any], str]):
         """Await work(); fill a success/message response; errors become success=false."""
@@ -103,18 +126,18 @@ class DriveServices:
         async def work():
             self.node.check_link(h, 'enable' if req.data else 'disable', safe=not req.data)
             if req.data:
-                await self._run_job(h, Command.enable(h.drive.enable))
+                _, after = await self._command(h, Command.enable(h.drive.enable))
             else:
-                await self._run_job(h, Command.disable(h.drive.disable))
-            await self.node.published(h)
-            return h.state.state.value
+                _, after = await self._command(h, Command.disable(h.drive.disable))
+            await self.node.published(h, after=after)
+            return self._state_text(h, after)
         return await self._respond(h, resp, work, lambda st: f'{h.name}: {st}')
 
     async def srv_stop(self, h: 'DriveHandle', req, resp):
         async def work():
             self.node.check_link(h, 'stop', safe=True)
-            await self._run_job(h, Command.stop(h.drive.stop))
-            await self.node.published(h)
+            _, after = await self._command(h, Command.stop(h.drive.stop))
+            await self.node.published(h, after=after)
         return await self._respond(h, resp, work,
                                    lambda _: f'{h.name}: stopping with the profile deceleration')
 
@@ -125,23 +148,29 @@ class DriveServices:
             self.node.refuse(h, f'home: drive is in FAULT 0x{h.state.fault_code:04X} '
                            f'({h.state.fault_text}); call fault_reset first')
         homing = h.homing()
-        note = await self._run_job(h, Command.homing(lambda: h.drive.start_homing(homing)))
+        note, after = await self._command(
+            h, Command.homing(lambda: h.drive.start_homing(homing)))
         timeout_s = h.param('homing.timeout_s')
         deadline = self.node.get_clock().now().nanoseconds * 1e-9 + timeout_s
-        fresh = await self._next_poll(h)
+        fresh = await self._next_poll(h, after)
         idle_polls = 0         # snapshots in a row that say no homing runs (after its start)
         while True:
-            st = h.state.homing
+            # Only a snapshot read after the homing's start says how it goes: an older one (a
+            # poll under way while it started, or the last one when none came since) may show
+            # the previous homing's ATTAINED.
+            s = self._since(h, after)
+            st = s.homing if s is not None else None
             if st == HomingState.ATTAINED:
-                await self.node.published(h)
-                return (f'{h.name}: homed at {h.position:.6g} ({h.state.position_steps} steps)'
-                        + (f'; {note}' if note else ''))
-            if st == HomingState.ERROR or h.state.fault:
-                raise DriveError(f'homing failed (state {h.state.state.value}'
-                                 + (f', fault 0x{h.state.fault_code:04X} {h.state.fault_text}'
-                                    if h.state.fault else '')
-                                 + (f', alarms: {"; ".join(h.state.alarms)}'
-                                    if h.state.alarms else '') + ')')
+                await self.node.published(h, after=after)
+                s = h.state        # (as new as the one judged, or newer)
+                return (f'{h.name}: homed at {h.conv.from_steps(s.position_steps):.6g} '
+                        f'({s.position_steps} steps)' + (f'; {note}' if note else ''))
+            if s is not None and (st == HomingState.ERROR or s.fault):
+                raise DriveError(f'homing failed (state {s.state.value}'
+                                 + (f', fault 0x{s.fault_code:04X} {s.fault_text}'
+                                    if s.fault else '')
+                                 + (f', alarms: {"; ".join(s.alarms)}'
+                                    if s.alarms else '') + ')')
             if not h.connected:
                 raise DriveError('homing interrupted: link lost')
             if cancelled():
@@ -154,9 +183,9 @@ class DriveServices:
                 idle_polls = 0
             elif fresh:
                 idle_polls += 1
-            if idle_polls >= SETTLED_POLLS:
+            if idle_polls >= SETTLED_POLLS:       # (s: the snapshot that counted last)
                 raise DriveError(f'homing interrupted before it ended (state '
-                                 f'{h.state.state.value}, mode {h.state.mode}): a stop, a '
+                                 f'{s.state.value}, mode {s.mode}): a stop, a '
                                  'disable or a mode change; not homed')
             if self.node.get_clock().now().nanoseconds * 1e-9 > deadline:
                 await self._stop_quietly(h, 'homing timeout')
@@ -164,7 +193,7 @@ class DriveServices:
                                  'drive stopped')
             if feedback:
                 feedback()
-            fresh = await self._next_poll(h, 1.0)
+            fresh = await self._next_poll(h, after, 1.0)
 
     async def _stop_quietly(self, h: 'DriveHandle', why: str) -> None:
         try:
@@ -190,11 +219,11 @@ class DriveServices:
                 await self.node.published(h)
                 return f'the identity matches again: driven, state {h.state.state.value}'
             self.node.check_link(h, 'fault_reset')
-            remaining = await self._run_job(h, Command.fault_reset(h.drive.fault_reset))
-            await self.node.published(h)
+            remaining, after = await self._command(h, Command.fault_reset(h.drive.fault_reset))
+            await self.node.published(h, after=after)
             if remaining:
                 raise DriveError(f'fault remains: {remaining}')
-            return f'fault cleared, state {h.state.state.value}'
+            return f'fault cleared, state {self._state_text(h, after)}'
         return await self._respond(h, resp, work, lambda text: f'{h.name}: {text}')
 
     async def srv_save_params(self, h: 'DriveHandle', req, resp):
@@ -242,17 +271,17 @@ class DriveServices:
         try:
             steps = self.node.check_position(h, 'move_to', target)
             motion = h.motion()
-            await self._run_job(h, Command.move(lambda: h.drive.move_to(steps, motion),
-                                                f'move_to {target}'))
+            _, after = await self._command(
+                h, Command.move(lambda: h.drive.move_to(steps, motion), f'move_to {target}'))
             fb = MoveTo.Feedback()
             settled, last = 0, None
-            await self._next_poll(h)
+            await self._next_poll(h, after)
             while True:
-                fresh = await self._next_poll(h, 1.0)
+                fresh = await self._next_poll(h, after, 1.0)
                 if not fresh and not h.connected:
                     raise DriveError('move aborted: link lost')
-                s = h.state
-                if s.fault:
+                s = self._since(h, after)     # None: nothing read since the move was sent
+                if s is not None and s.fault:
                     raise DriveError(f'move aborted: state {s.state.value} {s.fault_text}'.strip())
                 if goal_handle.is_cancel_requested:
                     await self._stop_quietly(h, 'move_to cancelled')
@@ -260,20 +289,21 @@ class DriveServices:
                     result.message, result.final_position = 'cancelled; drive stopped', h.position
                     return result
                 # decided on SETTLED_POLLS snapshots in a row that agree: standstill at one
-                # position (one snapshot may mix an old position with a new status)
-                still = not s.moving and (s.target_reached or abs(
-                    s.position_steps - steps) <= TARGET_TOLERANCE_STEPS)
-                if fresh:     # a snapshot counts once
+                # position (one snapshot may mix an old position with a new status), each read
+                # after the move was sent
+                if fresh and s is not None:     # a snapshot counts once
+                    still = not s.moving and (s.target_reached or abs(
+                        s.position_steps - steps) <= TARGET_TOLERANCE_STEPS)
                     settled = settled + 1 if still and last == s.position_steps else int(still)
                     last = s.position_steps
                 if settled >= SETTLED_POLLS:
                     if abs(s.position_steps - steps) <= TARGET_TOLERANCE_STEPS:
                         break
                     raise DriveError(f'drive stopped at {h.position:.6g}, not at {target:.6g}')
-                fb.position, fb.state = h.position, s.state.value
+                fb.position, fb.state = h.position, h.state.state.value
                 fb.distance_remaining = target - h.position
                 goal_handle.publish_feedback(fb)
-            await self.node.published(h)
+            await self.node.published(h, after=after)
             goal_handle.succeed()
             result.success, result.message = True, f'{h.name}: at {h.position:.6g}'
         except (CommandRefused, DriveError) as e:

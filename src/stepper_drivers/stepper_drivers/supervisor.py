@@ -41,6 +41,16 @@ Order:
   step of a job on the bus and one transaction, whatever runs beside it; every watchdog is
   checked on time.
 
+Snapshot provenance: the owner counts the writes to each drive (`Slot.write_seq`: +1 when a job
+of the drive starts, +1 when it ends; a job's future carries the count at its end as
+`after_write`), and every snapshot carries the count in force when its read began
+(`DriveState.after_write`: set when the poll began, by the owner or at the poll group's loan; a
+snapshot a drive vouches for in a quiet cycle, the count at the vouching). A poll under way when
+a job starts (a step-wise poll, whose steps go on between the job's) ends with a count below the
+job's end. `wait_poll` answers a waiter only with a snapshot at or above the count it names (by
+default the drive's count when it was registered): what a service judges its answer by was read
+after its own writes.
+
 The velocity watchdog: `arm_watchdog()` is called when a velocity command is
 accepted, before anything is written; only a job submitted with `disarms=True` (a stop, a
 position or homing command) that the drive confirmed disarms it. A refusal, a lost reply or a link
@@ -186,7 +196,13 @@ class Slot:
         self.turn = 0
         self.submitted = 0           # jobs submitted for this drive (submit, under _cv)
         self.watchdog_retry_t = 0.0
-        self.poll_waiters: list[tuple[float, Callable[[bool], None]]] = []
+        # (deadline, callback, the least write count of a snapshot that answers it): wait_poll
+        self.poll_waiters: list[tuple[float, Callable[[bool], None], int]] = []
+        # writes to the drive: +1 when one of its jobs starts and +1 when it ends (owner
+        # thread; read by others); a snapshot stamped with it followed every write counted
+        self.write_seq = 0
+        # write_seq when the poll under way (or the last one) began: its snapshot's stamp
+        self.poll_seq = 0
         # the last poll was the poll group's (poll_group.py): the owner need not wake for the
         # next one unless the group misses it by GROUP_GRACE_S
         self.group_polled = False
@@ -257,8 +273,10 @@ class BusSupervisor:
         self._loan_waiter = False
         # (_events, the drives' next poll, the owner's next event, _vouched) after a quiet
         # cycle: the next pass may go straight to the next one (_after_quiet_cycle)
-        self._quiet_pass: tuple[int, float, float, tuple[int, float]] | None = None
-        self._vouched: tuple[int, float] = (0, 0.0)   # (bus.changes, until): _quiet_cycle
+        self._quiet_pass: tuple[int, float, float, tuple[int, float, int]] | None = None
+        # (bus.changes, until, _writes) of the last vouching: _quiet_cycle
+        self._vouched: tuple[int, float, int] = (0, 0.0, 0)
+        self._writes = 0            # the slots' write_seq increments, all drives (owner thread)
         self._fresh_s = 0.0         # the state_fresh_s the quiet cycles last gave the drives
         # (owner thread, during on_cycle) the cycle is a quiet pass' (_work_once): since the
         # cycle before, no other thread asked for anything, the owner did nothing else and no
@@ -340,13 +358,20 @@ class BusSupervisor:
             slot.next_poll_t = min(slot.next_poll_t, self.clock())
             self._notify()
 
-    def wait_poll(self, drive: str, timeout_s: float, callback: Callable[[bool], None]) -> None:
-        """Call callback(True) from the owner thread after the next poll of `drive`, or
-        callback(False) once timeout_s passed or the drive is lost; at once with False (in
-        this thread) once the bus shuts down: no poll will come."""
+    def wait_poll(self, drive: str, timeout_s: float, callback: Callable[[bool], None],
+                  after_write: int | None = None) -> None:
+        """Call callback(True) from the owner thread after the next poll of `drive` whose
+        snapshot followed write number `after_write` (its DriveState.after_write is at least
+        that; a job's future has the number at the job's end as `after_write`; None: the
+        drive's number now, every write so far), or callback(False) once timeout_s passed or
+        the drive is lost; at once with False (in this thread) once the bus shuts down: no
+        poll will come. A poll that began before that write (one under way while a job ran)
+        does not answer it: the drive is polled again at once."""
         with self._cv:
             if not self._stopping:
-                self.slots[drive].poll_waiters.append((self.clock() + timeout_s, callback))
+                slot = self.slots[drive]
+                after = slot.write_seq if after_write is None else after_write
+                slot.poll_waiters.append((self.clock() + timeout_s, callback, after))
                 self._notify()
                 return
         callback(False)
@@ -429,6 +454,8 @@ class BusSupervisor:
                         and not s.poll_waiters and now >= s.next_poll_t:
                     requests = s.drive.state_requests()
                     if requests:
+                        # (no job of the drive runs until give_back: the owner waits)
+                        s.poll_seq = s.write_seq
                         out.append((s, requests))
             self._lent = bool(out)
             return out
@@ -655,7 +682,7 @@ class BusSupervisor:
         return True
 
     def _quiet_cycle(self, dues: list[Slot], now: float,
-                     vouched: tuple[int, float] | None = None) -> bool:
+                     vouched: tuple[int, float, int] | None = None) -> bool:
         """A cycle in which no drive has anything new: every drive of the bus is due, and each
         says its read_state() would give the very state of its last poll
         (Drive.unchanged_until: a cache that nothing changed since, no frame, no command).
@@ -664,12 +691,14 @@ class BusSupervisor:
         way, a waiter): then the polls go one by one (_poll_step). On 8 idle CANopen drives at
         50 Hz this is most cycles (docs/benchmarks.md).
 
-        vouched: (the bus' `changes`, until when) the drives vouched for at the last quiet
-        cycle, given by a pass that knows nothing else happened since (no request, no work of
-        the owner's: the quiet pass of _work_once); while the bus counted no change and that
-        time is ahead, the drives are not asked again."""
+        vouched: (the bus' `changes`, until when, the owner's write count) the drives vouched
+        for at the last quiet cycle, given by a pass that knows nothing else happened since (no
+        request, no work of the owner's: the quiet pass of _work_once); while the bus counted
+        no change, no job started or ended and that time is ahead, the drives are not asked
+        again. Each snapshot counted polled is stamped with its drive's write count now."""
         changes = self.bus.changes                   # before what the drives vouch for
-        if vouched is not None and vouched[0] == changes and now < vouched[1]:
+        if vouched is not None and vouched[0] == changes and now < vouched[1] \
+                and vouched[2] == self._writes:      # (no job of any drive since)
             until = vouched[1]
         else:
             until = math.inf
@@ -680,7 +709,7 @@ class BusSupervisor:
                 if t <= now:
                     return False
                 until = min(until, t)
-        self._vouched = (changes, until)
+        self._vouched = (changes, until, self._writes)
         self._jobs_since_poll = 0
         next_t = self._next_grid_t(now)
         period = self._period_s()
@@ -690,6 +719,9 @@ class BusSupervisor:
                 slot.owner_polls = slot.group_polled = False
             slot.next_poll_t = next_t
             state = slot.state
+            # a read now would give it: it follows the writes so far (the vouching is asked
+            # again after any job: _writes above)
+            state.after_write = slot.poll_seq = slot.write_seq
             slot.sample = (state, t if state.measured_at_s is None else state.measured_at_s)
             slot.polls += 1
         if period != self._fresh_s:        # (the rate can change at run time)
@@ -770,8 +802,8 @@ class BusSupervisor:
             elif (not s.not_driven or s.identity_recheck) and s.active is None \
                     and s.next_connect_t < t:
                 t = s.next_connect_t                # (a connect under way wakes at wake_t)
-            for w, _ in s.poll_waiters:
-                t = min(t, w)
+            for w in s.poll_waiters:
+                t = min(t, w[0])
         return min(t, self._next_timer_t())
 
     def _next_timer_t(self) -> float:
@@ -801,7 +833,13 @@ class BusSupervisor:
                 f'{job.label}: drive {slot.name} is DISCONNECTED ({self.bus.description})'))
             return
         slot.active = job
+        self._wrote(slot)
         self._advance(slot, job.fn)
+
+    def _wrote(self, slot: Slot) -> None:
+        """A job of slot's drive starts or ends: what is polled from now on follows it."""
+        slot.write_seq += 1
+        self._writes += 1
 
     def _step_active(self, slot: Slot) -> None:
         steps = slot.active_steps
@@ -843,7 +881,11 @@ class BusSupervisor:
                     slot.velocity_deadline = None
 
     def _finish(self, slot: Slot) -> None:
-        """slot.active ended: the job an urgent one suspended goes on (at its wake time)."""
+        """slot.active ended: its future gets the drive's write count at its end (before its
+        result), and the job an urgent one suspended goes on (at its wake time)."""
+        self._wrote(slot)
+        if slot.active is not None:
+            slot.active.future.after_write = slot.write_seq
         if slot.suspended:
             slot.active, slot.active_steps, slot.wake_t = slot.suspended.pop()
         else:
@@ -889,6 +931,7 @@ class BusSupervisor:
             slot.suspended.append((slot.active, slot.active_steps, slot.wake_t))
             slot.active, slot.active_steps = None, None
         slot.active = job
+        self._wrote(slot)
         self._advance(slot, job.fn)
 
     def _cut_short(self, slot: Slot, why: str) -> None:
@@ -927,6 +970,7 @@ class BusSupervisor:
         slot.owner_polls = False
         try:
             if slot.poll_steps is None:
+                slot.poll_seq = slot.write_seq
                 result = slot.drive.read_state()
                 if is_steps(result):
                     slot.poll_steps = result
@@ -961,7 +1005,10 @@ class BusSupervisor:
             self._drive_lost(slot, f'unexpected error {exc!r}')
 
     def _polled(self, slot: Slot, state: DriveState) -> None:
-        """A poll's state: the slot's, its waiters', and the cycle's end when it was the last."""
+        """A poll's state: the slot's, its waiters', and the cycle's end when it was the last.
+        The state is stamped with the write count in force when the poll began (a drive that
+        returns the object of an earlier poll, its values unchanged, has it stamped again)."""
+        state.after_write = slot.poll_seq
         slot.state = state
         slot.drive.state_fresh_s = self._period_s()      # (the rate can change at run time)
         # when the position was true (the trajectory feedback compares the plan at that time)
@@ -992,11 +1039,22 @@ class BusSupervisor:
         self.on_cycle(self)
 
     def _resolve_waiters(self, slot: Slot, ok: bool) -> None:
+        """ok: slot.state was polled: the waiters whose write number it reached (its
+        after_write) are answered True; the others stay, and the drive is polled again at once.
+        Not ok (the drive lost, shutdown): every waiter is answered False."""
         if not slot.poll_waiters:          # the usual case: no lock taken
             return
+        stamp = slot.state.after_write
         with self._cv:
-            waiters, slot.poll_waiters = slot.poll_waiters, []
-        for _, callback in waiters:
+            waiters = slot.poll_waiters
+            if ok:
+                slot.poll_waiters = [w for w in waiters if w[2] > stamp]
+                waiters = [w for w in waiters if w[2] <= stamp]
+                if slot.poll_waiters:
+                    slot.next_poll_t = min(slot.next_poll_t, self.clock())
+            else:
+                slot.poll_waiters = []
+        for _, callback, _ in waiters:
             callback(ok)
 
     def _expire_waiters(self, now: float) -> None:
@@ -1014,12 +1072,12 @@ class BusSupervisor:
             for callback in due:
                 callback()
         for slot in self.slots.values():
-            if not slot.poll_waiters or not any(t <= now for t, _ in slot.poll_waiters):
+            if not slot.poll_waiters or not any(w[0] <= now for w in slot.poll_waiters):
                 continue
             with self._cv:
                 expired = [w for w in slot.poll_waiters if w[0] <= now]
                 slot.poll_waiters = [w for w in slot.poll_waiters if w[0] > now]
-            for _, callback in expired:
+            for _, callback, _ in expired:
                 callback(False)
 
     def _note_error(self, slot: Slot, msg: str) -> None:
@@ -1041,7 +1099,7 @@ class BusSupervisor:
         for job in queued:
             _resolve(job.future, exc=NotConnected(f'{job.label}: link lost ({why})'))
         slot.state = DriveState(state=State.DISCONNECTED, position_steps=slot.state.position_steps,
-                                homed=slot.state.homed)
+                                homed=slot.state.homed, after_write=slot.write_seq)
         slot.backoff_s = self.settings['reconnect_period_s']
         slot.next_connect_t = self.clock() + slot.backoff_s
         self.on_event('error', slot.name, f'link lost ({why}); reconnecting every '
@@ -1063,6 +1121,7 @@ class BusSupervisor:
         (a CANopen boot-up wait gives the bus to the other drives)."""
         slot.active = Job.of(slot.name, Command(CONNECT, lambda: self._connect_steps(slot),
                                                 'connect', motion=False), self.clock())
+        self._wrote(slot)
         self._advance(slot, slot.active.fn)
 
     def _connect_steps(self, slot: Slot):
@@ -1073,6 +1132,7 @@ class BusSupervisor:
         return identity, state
 
     def _connected(self, slot: Slot, identity: dict[str, str], state: DriveState) -> None:
+        state.after_write = slot.write_seq     # (read by the connect after its own writes)
         slot.identity, slot.state = identity, state
         why = self.on_connected(self, slot)
         if why:

@@ -1125,3 +1125,92 @@ def test_a_refused_owner_thread_priority_is_a_warning_and_the_bus_works(bus):
     assert not [e for e in other.events if 'owner_thread_priority' in e[2]]
     assert result(sup.submit('axis1', Command(COMMAND, lambda: drives['axis1'].move_to(5, None),
                                               'move'))) is None
+
+
+# ------------------------------------------------------------------------ snapshot provenance
+class SlowReadDrive(ScriptDrive):
+    """read_state() reads the drive's position with its request, then waits WAIT_S for the
+    rest of its answer in steps (a poll that spans several steps, as a Vector Step's burst or
+    an RD4 poll that writes after its read); move_to() sets the position at once."""
+
+    WAIT_S, STEP_S = 0.12, 0.01
+
+    def __init__(self, bus, name, params=None):
+        super().__init__(bus, name, params)
+        self.position = 0
+
+    def read_state(self):
+        self._tx('read_state')
+        position = self.position                    # what the drive said when asked
+        if self.on_read is not None:
+            on_read, self.on_read = self.on_read, None
+            on_read()
+        until = time.monotonic() + self.WAIT_S
+        while time.monotonic() < until:
+            yield self.STEP_S
+        return DriveState(state=State.OPERATION_ENABLED, enabled=True, position_steps=position)
+
+    def move_to(self, target_steps, motion):
+        self._tx('move_to', target_steps)
+        self.position = target_steps
+
+
+def test_an_answer_awaits_a_snapshot_read_after_its_command_not_one_in_flight_before_it():
+    """A command that comes while a poll of its drive is under way (read, its answer still
+    awaited) runs between the poll's steps and ends before it. A waiter for the drive's next
+    snapshot registered at the command's end (a service that answers by what its command did)
+    is not answered by that poll, whose read went out before the command's write, but by the
+    next one, which shows the write; each snapshot carries the drive's write count in force
+    when its read began, and the command's future the count at its end."""
+    line = Line()
+    drive = SlowReadDrive(line, 'axis1')
+    sup = BusSupervisor(line, {'axis1': drive}, {'publish_rate_hz': RATE_HZ,
+                        'command_timeout_s': 0.3, 'reconnect_period_s': 0.05})
+    slot = sup.slots['axis1']
+    sup.start()
+    try:
+        wait_for(lambda: slot.polls >= 2, 3.0, 'polled')
+        answers, stale, futs = [], [], []
+
+        def answered(ok):                      # owner thread, once the waiter is answered
+            answers.append((ok, slot.state, slot.state.position_steps))
+
+        def move_ended(fut):                   # owner thread, at the command's end
+            assert slot.poll_steps is not None, 'the poll no longer under way'
+            stale.append(slot.state)
+            sup.wait_poll('axis1', 1.0, answered)
+
+        def command():
+            fut = sup.submit('axis1', Command(COMMAND, lambda: drive.move_to(500, None), 'move'))
+            fut.add_done_callback(move_ended)
+            futs.append(fut)
+        drive.on_read = command                 # during a poll's read: the poll goes on after
+        wait_for(lambda: answers, 2.0, 'the waiter answered')
+        assert result(futs[0]) is None
+        ok, state, position = answers[0]
+        assert ok and position == 500, f'answered by a snapshot read before the move: {position}'
+        assert state.after_write >= futs[0].after_write > stale[0].after_write
+        # the poll that was under way did publish its snapshot, stamped before the move
+        wait_for(lambda: slot.state.position_steps == 500, 1.0, 'polled after')
+    finally:
+        sup.shutdown(0.5)
+
+
+def test_a_snapshot_a_drive_vouches_for_after_a_command_carries_the_count_of_that_vouch():
+    """A quiet cycle counts a drive polled by its word that the last poll still holds: that
+    snapshot is stamped with the write count in force at the vouching, after the command."""
+    line, d, sup = quiet_bus(n=2)
+    for drive in d.values():
+        drive.until = float('inf')
+    slot = sup.slots['axis1']
+    sup.start()
+    try:
+        wait_for(lambda: all(s.polls >= 1 for s in sup.slots.values()), 3.0, 'first polls')
+        fut = sup.submit('axis1', Command(COMMAND, lambda: d['axis1'].fault_reset(), 'reset'))
+        result(fut)
+        polls = slot.polls
+        wait_for(lambda: slot.polls >= polls + 2, 6.0 / RATE_HZ, 'two quiet cycles')
+        assert slot.state is d['axis1'].state
+        assert slot.state.after_write == fut.after_write == slot.write_seq
+    finally:
+        sup.shutdown(0.5)

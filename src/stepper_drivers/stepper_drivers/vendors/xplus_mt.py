@@ -107,6 +107,8 @@ class XplusMtDrive(Cia402Drive):
         self._snapshot: tuple[tuple, DriveState | None] = ((), None)
         self._was_enabled = False
         self._watchdog_armed = False
+        # (statusword, mode display) of the last read of both before a motion command
+        self._shown: tuple[int, int] = (0, 0)
 
     # ------------------------------------------------------------------ register helpers
     def _read_words(self, address: int, count: int) -> list[int]:
@@ -399,7 +401,9 @@ class XplusMtDrive(Cia402Drive):
         """One FC03 of 1001..1002: the state checked on the wire, and Modes of Operation Display
         (1002), so no second read is needed for the mode."""
         sw, mode = self._read_words(1001, 2)
-        return sw, mode - 0x10000 if mode & 0x8000 else mode
+        mode = mode - 0x10000 if mode & 0x8000 else mode
+        self._shown = (sw, mode)
+        return sw, mode
 
     def _wait_settled(self) -> Steps[None]:
         """§12 note: New Set Points sent before the motor settled (~50-200 ms, and 1096 Brake
@@ -415,7 +419,11 @@ class XplusMtDrive(Cia402Drive):
         deadline = time.monotonic() + self.MODE_SWITCH_TIMEOUT_S
         while True:
             yield cia402.Cia402Device.POLL_S
-            shown = self._read('MODE_OF_OPERATION_DISPLAY')
+            # the display (1002) with the statusword (1001) in one FC03: its bits in the new
+            # mode (a homing's previous result) come with it
+            sw, shown = self._read_words(1001, 2)
+            shown = shown - 0x10000 if shown & 0x8000 else shown
+            self._shown = (sw, shown)
             if shown == mode:
                 yield 0.0       # the caller's next transaction in a step of its own
                 return
@@ -535,6 +543,10 @@ class XplusMtDrive(Cia402Drive):
                                  f'FOLLOWING_ERROR_REACTION_CODE (1085) = 17 (motor without '
                                  f'encoder)')
         homing_mode = yield from self._ensure_mode(xm.MODE_HOMING, 'home', mode)
+        # what the drive showed in homing mode before the start edge (the read above, or the
+        # mode switch's): its previous homing's ATTAINED is no start of this one
+        sw, shown = self._shown
+        self._homing_shown_before = cia402.homing_state(sw) if shown == xm.MODE_HOMING else None
         self._write(*writes)
         self._homed = False
         yield 0.0
