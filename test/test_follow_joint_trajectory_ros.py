@@ -7,18 +7,22 @@ control_msgs type, as moveit_simple_controller_manager uses it. Trajectories are
 straight line in the joint space of two joints with quintic timing (rest to rest), a point every
 0.1 s or 0.05 s with positions, velocities and accelerations, header.stamp zero (start now).
 MoveIt cancels a goal not done within 1.2 x its duration + 0.5 s (its defaults): that is the
-bound here.
+bound here. A goal the node cannot take is REJECTED in its goal callback, as
+JointTrajectoryController does, the reason in the node's log.
 """
 
 import math
+import threading
 import time
+from types import SimpleNamespace
 
 from action_msgs.msg import GoalStatus
 from builtin_interfaces.msg import Duration, Time
 from control_msgs.action import FollowJointTrajectory
 from control_msgs.msg import JointComponentTolerance, JointTolerance
 import pytest
-from rosharness import MIDDLEWARE_S, Procs, RosClient, Track, TrajectoryGoal as Client
+from rosharness import (MIDDLEWARE_S, Procs, RosClient, Track, TrajectoryGoal as Client,
+                        wait_for)
 from std_srvs.srv import Trigger
 from test_rd4_ros import Bench as Rd4Bench
 from test_vector_step_ros import Rig as VectorRig
@@ -53,6 +57,54 @@ def quintic(joints, start, end, duration_s, dt_s):
             accelerations=[ddf * (b - a) for a, b in zip(start, end)],
             time_from_start=duration(k * dt_s)))
     return msg
+
+
+def rejected(bench, goal):
+    """Whether the node rejects `goal` in its goal callback (rclpy's ActionClient as MoveIt's
+    controller handle uses it: the goal response only)."""
+    from rclpy.action import ActionClient
+    client = ActionClient(bench.ros.node, FollowJointTrajectory,
+                          f'{bench.node_ns}/follow_joint_trajectory')
+    try:
+        assert client.wait_for_server(timeout_sec=10)
+        answered = threading.Event()
+        fut = bench.ros.in_spin(client.send_goal_async, goal)
+        fut.add_done_callback(lambda _f: answered.set())
+        assert answered.wait(10), 'no goal response'
+        return not fut.result().accepted
+    finally:
+        bench.ros.in_spin(client.destroy)
+
+
+def log_lines(bench):
+    return bench.node.output().splitlines()
+
+
+def logged(bench, since, *parts, timeout_s=2.0):
+    """The first line of the node's log after line `since` (a len(log_lines())) holding every
+    one of `parts`."""
+    def find():
+        return next((line for line in log_lines(bench)[since:]
+                     if all(p in line for p in parts)), None)
+    return wait_for(find, timeout_s, f'a log line with {parts}')
+
+
+def get_param(bench, name):
+    """A node parameter's value (double parameters only)."""
+    from rcl_interfaces.srv import GetParameters
+    r = bench.ros.call(GetParameters, f'{bench.node_ns}/get_parameters',
+                       GetParameters.Request(names=[name]))
+    return r.values[0].double_value
+
+
+def set_params(bench, *params):
+    results = bench.set_params(*params)
+    assert all(r.successful for r in results), [r.reason for r in results]
+
+
+def single_point(joints, positions, t_s):
+    return JointTrajectory(joint_names=list(joints), points=[JointTrajectoryPoint(
+        positions=[float(p) for p in positions], time_from_start=duration(t_s))])
 
 
 # ------------------------------------------------------------------------- the four benches
@@ -181,42 +233,206 @@ def test_a_dense_trajectory_finishes_within_moveits_limit_and_the_path_tolerance
         assert not f.multi_dof_joint_names
 
 
-def test_goals_that_cannot_be_taken_are_refused_naming_why_and_nothing_moves(setup):
+def test_goals_that_cannot_be_taken_are_rejected_naming_why_and_nothing_moves(setup):
+    """Rejected in the goal callback (MoveIt then cancels the parts of the plan it sent to
+    other controllers), each with its reason and the result code it stands for in the log."""
     still(setup)
     before = setup.positions()
     j1, j2 = setup.joints
     one = quintic(setup.joints, before, [before[0] + 1.0, before[1]], 1.0, 0.1)
     cases = []
     g = FollowJointTrajectory.Goal(trajectory=quintic(['elbow', j2], [0, 0], [1, 1], 1.0, 0.1))
-    cases.append((g, Result.INVALID_JOINTS, "['elbow'] are not driven by this node"))
+    cases.append((g, 'INVALID_JOINTS', "joints ['elbow'] are not driven by this node"))
     g = FollowJointTrajectory.Goal(trajectory=one, multi_dof_trajectory=MultiDOFJointTrajectory(
         joint_names=['base']))
-    cases.append((g, Result.INVALID_GOAL, 'multi_dof_trajectory'))
+    cases.append((g, 'INVALID_GOAL', 'multi_dof_trajectory'))
     g = FollowJointTrajectory.Goal(trajectory=one, component_path_tolerance=[
         JointComponentTolerance(joint_name='base', component=4, position=0.1)])
-    cases.append((g, Result.INVALID_GOAL, 'component_path_tolerance'))
+    cases.append((g, 'INVALID_GOAL', 'component_path_tolerance'))
     g = FollowJointTrajectory.Goal(trajectory=one, path_tolerance=[
         JointTolerance(name=j1, acceleration=1.0)])
-    cases.append((g, Result.INVALID_GOAL, f'path_tolerance of {j1}: acceleration 1'))
+    cases.append((g, 'INVALID_GOAL', f'path_tolerance of {j1}: acceleration 1'))
     g = FollowJointTrajectory.Goal(trajectory=one, goal_tolerance=[
         JointTolerance(name=j1, position=-0.5)])
-    cases.append((g, Result.INVALID_GOAL, f'goal_tolerance of {j1}: position -0.5 is not a '
-                                          'tolerance'))
+    cases.append((g, 'INVALID_GOAL', f'goal_tolerance of {j1}: position -0.5 is not a '
+                                     'tolerance'))
     g = FollowJointTrajectory.Goal(trajectory=one, goal_tolerance=[
         JointTolerance(name='wrist', position=0.1)])
-    cases.append((g, Result.INVALID_JOINTS, "goal_tolerance: joint 'wrist' is not driven"))
+    cases.append((g, 'INVALID_JOINTS', "goal_tolerance: joint 'wrist' is not driven"))
     old = FollowJointTrajectory.Goal(trajectory=quintic(setup.joints, before, before, 1.0, 0.1))
     old.trajectory.header.stamp = Time(sec=1)                       # 1970: ended long ago
-    cases.append((old, Result.OLD_HEADER_TIMESTAMP, 'the trajectory ended'))
+    cases.append((old, 'OLD_HEADER_TIMESTAMP', 'the trajectory ended'))
+    g = FollowJointTrajectory.Goal(trajectory=JointTrajectory(joint_names=list(setup.joints)))
+    cases.append((g, 'INVALID_GOAL', 'empty trajectory (no points)'))
+    g = FollowJointTrajectory.Goal(trajectory=single_point([j1], [1e4], 100.0))
+    cases.append((g, 'INVALID_GOAL', f'{j1}: point 0 at 10000 rad is outside '
+                                     'min_position..max_position'))
+    # 40 rad in 0.1 s: 16000 rad/s^2, beyond every shipped max_acceleration (the plan, made in
+    # the goal callback too)
+    far = before[0] + (40.0 if before[0] < 10.0 else -40.0)
+    g = FollowJointTrajectory.Goal(trajectory=single_point([j1], [far], 0.1))
+    cases.append((g, 'INVALID_GOAL', f'{j1}: segment to point 0'))
     for goal, code, text in cases:
-        c = Client(setup.bench, goal)
-        result = c.result(5.0)
-        assert c.status == GoalStatus.STATUS_ABORTED and result.error_code == code, \
-            (code, result.error_string)
-        assert text in result.error_string, result.error_string
+        since = len(log_lines(setup.bench))
+        assert rejected(setup.bench, goal), text
+        logged(setup.bench, since, f'goal rejected ({code}): ', text)
+    setup.bench.enable('axis2', False)
+    try:
+        since = len(log_lines(setup.bench))
+        assert rejected(setup.bench, FollowJointTrajectory.Goal(trajectory=one))
+        logged(setup.bench, since, 'goal rejected (INVALID_GOAL): ',
+               f'{j2}: drive axis2 is not enabled')
+    finally:
+        setup.bench.enable('axis2')
     for d in ('axis1', 'axis2'):
         assert not setup.bench.status(d).moving
     assert setup.positions() == pytest.approx(before, abs=1.5 / setup.steps_per_rad)
+
+
+def test_a_plan_at_the_joint_limits_is_followed(setup):
+    """MoveIt interpolates as from + (to - from) * t (RevoluteJointModel::interpolate), which
+    can end an ulp beyond `to`: a plan to a joint's max_position can end an ulp beyond it. A
+    joint standing at the step nearest its min_position reports a position up to half a step
+    beyond it, which every point of a plan that does not move it keeps. Both are followed, at
+    the limit; a point a step beyond a limit is rejected."""
+    still(setup)
+    j1, j2 = setup.joints
+    bench, spu = setup.bench, setup.steps_per_rad
+    start = setup.positions()
+    names = [f'drives.{d}.{k}' for d in ('axis1', 'axis2') for k in ('min_position',
+                                                                      'max_position')]
+    saved = [(n, get_param(bench, n)) for n in names]
+    # j1 to an ulp beyond its max_position, 1 rad ahead (beyond in steps too); j2's
+    # min_position a quarter step above where it stands
+    upper = next(u for u in (start[0] + 1.0 + k * 1e-7 for k in range(1000))
+                 if math.nextafter(u, math.inf) * spu > u * spu)
+    lower = start[1] + 0.25 / spu
+    try:
+        set_params(bench, ('drives.axis1.max_position', upper),
+                   ('drives.axis2.min_position', lower))
+        plan = quintic(setup.joints, start, [math.nextafter(upper, math.inf), start[1]], 1.0,
+                       0.1)
+        assert plan.points[-1].positions[0] > upper and plan.points[-1].positions[1] < lower
+        c = Client(bench, FollowJointTrajectory.Goal(trajectory=plan))
+        result = c.result(10.0)
+        assert c.status == GoalStatus.STATUS_SUCCEEDED, result.error_string
+        assert setup.true_rad('axis1') == pytest.approx(upper, abs=0.5 / spu)
+        assert setup.true_rad('axis2') == pytest.approx(start[1], abs=0.5 / spu)
+        since = len(log_lines(bench))
+        assert rejected(bench, FollowJointTrajectory.Goal(trajectory=single_point(
+            [j1], [upper + 1.0 / spu], 1.0)))
+        logged(bench, since, 'goal rejected (INVALID_GOAL): ', f'{j1}: point 0 at',
+               'is outside min_position..max_position')
+    finally:
+        set_params(bench, *saved)
+
+
+def test_a_newer_goal_replaces_the_running_one_which_ends_aborted_with_a_code(setup):
+    """As JointTrajectoryController preempts a goal: ABORTED with a nonzero code (INVALID_GOAL;
+    MoveIt logs a result of SUCCESSFUL as "successfully finished") and a text saying why."""
+    still(setup)
+    start = setup.positions()
+    sign = 1 if start[0] < 1.0 else -1
+    old = Client(setup.bench, FollowJointTrajectory.Goal(trajectory=quintic(
+        setup.joints, start, [start[0] + 4.0 * sign, start[1] + 2.0 * sign], 4.0, 0.1)))
+    setup.bench.status('axis1', lambda m: abs(m.position - start[0]) > 0.3, 5.0,
+                       'axis1 well under way')
+    new = Client(setup.bench, FollowJointTrajectory.Goal(trajectory=single_point(
+        setup.joints, start, 2.0)))
+    replaced = old.result(5.0)
+    assert old.status == GoalStatus.STATUS_ABORTED
+    assert replaced.error_code == Result.INVALID_GOAL, replaced
+    assert 'replaced by a newer goal' in replaced.error_string
+    result = new.result(10.0)
+    assert new.status == GoalStatus.STATUS_SUCCEEDED, result.error_string
+    assert setup.positions() == pytest.approx(start, abs=1.5 / setup.steps_per_rad)
+
+
+def test_the_constraints_parameters_are_the_defaults_of_a_goal(setup):
+    """JointTrajectoryController's constraints.<joint>.goal and .trajectory (per joint, in rad):
+    a goal with no tolerances of its own is checked against them; a goal's own -1 lifts one."""
+    still(setup)
+    bench, (j1, _) = setup.bench, setup.joints
+    goal_param, path_param = f'constraints.{j1}.goal', f'constraints.{j1}.trajectory'
+    assert get_param(bench, goal_param) == pytest.approx(1.0 / setup.steps_per_rad, rel=1e-9)
+    assert get_param(bench, path_param) == 0.0
+    saved = [(goal_param, get_param(bench, goal_param)), (path_param, 0.0)]
+    try:
+        # stopped short: within a goal tolerance of 100 rad (with one step, the default, it is
+        # GOAL_TOLERANCE_VIOLATED: test_a_tolerance_of_minus_one_is_not_checked)
+        set_params(bench, (goal_param, 100.0))
+        start = setup.positions()
+        c = Client(bench, FollowJointTrajectory.Goal(trajectory=single_point(
+            [j1], [start[0] + (3.0 if start[0] < 1.0 else -3.0)], 2.0)))
+        bench.status('axis1', lambda m: m.moving, 5.0, 'axis1 following')
+        assert bench.call('axis1', 'stop').success
+        result = c.result(10.0)
+        assert c.status == GoalStatus.STATUS_SUCCEEDED, result.error_string
+        bench.status('axis1', lambda m: not m.moving, 5.0, 'axis1 stopped')
+        assert abs(setup.positions()[0] - start[0]) < 2.9          # it did stop short
+        # a path tolerance of 1e-9 rad: any following error ends the goal, and stops the joint
+        set_params(bench, (path_param, 1e-9))
+        start = setup.positions()
+        c = Client(bench, FollowJointTrajectory.Goal(trajectory=single_point(
+            [j1], [start[0] + (1.0 if start[0] < 1.0 else -1.0)], 1.0)))
+        result = c.result(10.0)
+        assert c.status == GoalStatus.STATUS_ABORTED
+        assert result.error_code == Result.PATH_TOLERANCE_VIOLATED, result.error_string
+        assert result.error_string.startswith(f'{j1}: ')
+        # the goal's own path tolerance of -1: not checked
+        bench.status('axis1', lambda m: not m.moving, 5.0, 'axis1 stopped')
+        start = setup.positions()
+        target = start[0] + (1.0 if start[0] < 1.0 else -1.0)
+        goal = FollowJointTrajectory.Goal(trajectory=single_point([j1], [target], 1.0),
+                                          path_tolerance=[JointTolerance(name=j1, position=-1.0)])
+        c = Client(bench, goal)
+        result = c.result(10.0)
+        assert c.status == GoalStatus.STATUS_SUCCEEDED, result.error_string
+        assert setup.true_rad('axis1') == pytest.approx(target, abs=1.5 / setup.steps_per_rad)
+    finally:
+        set_params(bench, *saved)
+
+
+def test_a_goals_tolerances_resolve_over_the_constraints_parameters_as_jtcs():
+    """The node's resolution (node_trajectory, no process): > 0 the goal's bound, 0 the
+    constraints.* parameter (0 there: not checked), -1 not checked; goal_time_tolerance 0 is
+    constraints.goal_time, -1 no limit."""
+    from stepper_drivers.node_trajectory import TrajectoryInterface
+    from stepper_drivers.units import UnitConversion
+    conv = UnitConversion(12800.0)
+    spu = conv.steps_per_unit
+    params = {'constraints.goal_time': 0.5, 'constraints.stopped_velocity_tolerance': 0.02,
+              'constraints.a.trajectory': 0.1, 'constraints.a.goal': 0.0,
+              'constraints.b.trajectory': 0.0, 'constraints.b.goal': 0.01}
+    handle = SimpleNamespace(name='axis', conv=conv, cfg=SimpleNamespace(params={'unit': 'rad'}),
+                             state=SimpleNamespace(velocity_valid=True))
+    trajectories = TrajectoryInterface.__new__(TrajectoryInterface)     # no node: its parts
+    trajectories.node = SimpleNamespace(
+        by_joint={'a': handle, 'b': handle},
+        get_parameter=lambda name: SimpleNamespace(value=params[name]))
+    tol = trajectories._tolerances(FollowJointTrajectory.Goal(), ['a', 'b'])
+    assert tol.path_steps == {'a': pytest.approx(0.1 * spu)}
+    assert tol.goal_steps == {'a': None, 'b': pytest.approx(0.01 * spu)}
+    assert tol.goal_velocity_steps_s == {'a': pytest.approx(0.02 * spu),
+                                         'b': pytest.approx(0.02 * spu)}
+    assert tol.goal_time_s == 0.5
+    goal = FollowJointTrajectory.Goal(
+        path_tolerance=[JointTolerance(name='a', position=-1.0),
+                        JointTolerance(name='b', position=0.3)],
+        goal_tolerance=[JointTolerance(name='a', position=0.2, velocity=-1.0),
+                        JointTolerance(name='b', position=0.0, velocity=0.5)],
+        goal_time_tolerance=duration(1.5))
+    tol = trajectories._tolerances(goal, ['a', 'b'])
+    assert tol.path_steps == {'b': pytest.approx(0.3 * spu)}
+    assert tol.goal_steps == {'a': pytest.approx(0.2 * spu), 'b': pytest.approx(0.01 * spu)}
+    assert tol.goal_velocity_steps_s == {'a': None, 'b': pytest.approx(0.5 * spu)}
+    assert tol.goal_time_s == 1.5
+    tol = trajectories._tolerances(FollowJointTrajectory.Goal(
+        goal_time_tolerance=Duration(sec=-1)), ['a'])
+    assert tol.goal_time_s == 0.0                             # -1: no limit
+    params['constraints.stopped_velocity_tolerance'] = 0.0
+    assert trajectories._tolerances(FollowJointTrajectory.Goal(), ['a']) \
+        .goal_velocity_steps_s == {'a': None}                 # 0: not checked
 
 
 def test_a_tolerance_of_minus_one_is_not_checked(setup):

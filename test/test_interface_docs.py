@@ -99,7 +99,8 @@ def params(node, vendor) -> dict[str, dict]:
     for name, param in node._parameters.items():
         if name in ('use_sim_time', 'start_type_description_service'):
             continue
-        key = name.replace(f'drives.{DRIVE}.', 'drives.<drive>.')
+        key = name.replace(f'drives.{DRIVE}.', 'drives.<drive>.').replace(
+            f'constraints.{DRIVE}.', 'constraints.<joint>.')     # the drive's joint name
         d = node.describe_parameter(name)
         spec = specs.get(key)
         if key == 'drives':

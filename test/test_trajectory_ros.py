@@ -7,15 +7,22 @@ transaction, one true-position sample and the middleware hops of the measurement
 """
 
 import math
+import re
 import signal
+import sys
+import threading
 import time
 
 import pytest
+from action_msgs.msg import GoalStatus
 from builtin_interfaces.msg import Duration
 from control_msgs.action import FollowJointTrajectory
 from control_msgs.msg import JointTolerance
-from rosharness import MIDDLEWARE_S, Track, TrajectoryGoal as Goal, wait_for
+from lifecycle_msgs.msg import Transition
+from rosharness import MIDDLEWARE_S, ROOT, Track, TrajectoryGoal as Goal, wait_for
 from stepper_drivers_msgs.msg import DriveStatus
+from test_follow_joint_trajectory_ros import log_lines, logged, rejected
+from test_lifecycle_ros import XplusLifecycle
 from test_rd4_ros import Bench as Rd4Bench
 from test_vector_step_ros import Rig as VectorRig
 from test_xmind_k_ros import Bench as XmindBench
@@ -111,31 +118,122 @@ def test_xplus_a_goal_running_when_the_node_is_stopped_gets_its_result(xplus):
     xplus.status('axis1', lambda m: m.moving, what='following')
     assert xplus.node.stop(signal.SIGTERM) == 0
     result = g.result(2.0)                   # 'no result within 2 s': not before the node ended
-    from action_msgs.msg import GoalStatus
     assert g.status == GoalStatus.STATUS_ABORTED, g.status
+    # not SUCCESSFUL, which MoveIt logs as "successfully finished" (JointTrajectoryController
+    # ends a goal at its deactivation with INVALID_GOAL too)
+    assert result.error_code == FollowJointTrajectory.Result.INVALID_GOAL, result
     assert result.error_string == 'the node is shutting down', result
 
 
-def test_xplus_impossible_segment_is_refused_before_anything_moves(xplus):
+def test_xplus_impossible_segment_is_rejected_before_anything_moves(xplus):
     xplus.enable('axis1')
     before = xplus.fresh_true_steps('axis1')
     # 40 rad in 0.1 s needs 16000 rad/s^2; max_acceleration is 2000 (config/xplus_mt.yaml)
-    g = Goal(xplus, FollowJointTrajectory.Goal(trajectory=trajectory(
+    since = len(log_lines(xplus))
+    assert rejected(xplus, FollowJointTrajectory.Goal(trajectory=trajectory(
         ['xplus_joint1'], [(0.1, [40.0])])))
-    result = g.result(5.0)
-    assert result.error_code == FollowJointTrajectory.Result.INVALID_GOAL
-    assert 'xplus_joint1: segment to point 0' in result.error_string
-    assert 'max_acceleration' in result.error_string
+    logged(xplus, since, 'goal rejected (INVALID_GOAL): xplus_joint1: segment to point 0',
+           'max_acceleration')
     assert not xplus.status('axis1').moving
     assert xplus.fresh_true_steps('axis1') == before
 
 
-def test_xplus_unknown_joint_is_invalid_joints(xplus):
-    g = Goal(xplus, FollowJointTrajectory.Goal(trajectory=trajectory(
+def test_xplus_unknown_joint_is_rejected_as_invalid_joints(xplus):
+    since = len(log_lines(xplus))
+    assert rejected(xplus, FollowJointTrajectory.Goal(trajectory=trajectory(
         ['elbow'], [(1.0, [1.0])])))
-    result = g.result(5.0)
-    assert result.error_code == FollowJointTrajectory.Result.INVALID_JOINTS
-    assert "['elbow'] are not driven by this node" in result.error_string
+    logged(xplus, since, "goal rejected (INVALID_JOINTS): joints ['elbow'] are not driven by "
+                         'this node')
+
+
+def test_xplus_goals_for_an_inactive_node_or_a_drive_in_fault_are_rejected(procs, ros, tmp_path):
+    managed = XplusLifecycle(procs, ros, tmp_path)
+    goal = FollowJointTrajectory.Goal(trajectory=trajectory(['xplus_joint1'], [(1.0, [1.0])]))
+    assert managed.change(Transition.TRANSITION_CONFIGURE)
+    since = len(log_lines(managed))
+    assert rejected(managed, goal)
+    logged(managed, since, 'goal rejected (INVALID_GOAL): the node is not active (lifecycle '
+                           'state inactive)')
+    assert managed.change(Transition.TRANSITION_ACTIVATE)
+    managed.enable('axis1')
+    managed.inject('axis1', 'drive_fault', 0x4310)
+    managed.status('axis1', lambda m: m.fault, what='fault in status')
+    since = len(log_lines(managed))
+    assert rejected(managed, goal)
+    logged(managed, since, 'goal rejected (INVALID_GOAL): xplus_joint1: drive axis1 is in '
+                           'FAULT 0x4310')
+    assert not managed.status('axis1').moving
+
+
+RELAY = ROOT / 'scripts' / 'bench_cp_relays.py'
+
+
+class XplusRelayed(XplusBench):
+    """The node's Modbus TCP link through scripts/bench_cp_relays.py's relay, a process that
+    prints every request with the time its first byte came from the node (time.monotonic(),
+    one clock for every process of the machine): the node's frames on the wire."""
+
+    def start_sim(self, *extra_args):
+        super().start_sim(*extra_args)
+        if not hasattr(self, 'relay'):
+            self.relay = self.procs.start('relay', [sys.executable, str(RELAY), 'tcp',
+                                                    str(self.port)])
+            self.relay.wait_line('port ', 10.0)
+            port = re.search(r'port (\d+)', self.relay.output())[1]
+            self.node_extra_args = (*type(self).node_extra_args, '-p', f'port:={port}')
+
+    def writes(self, address, after_t):
+        """(time, unit) of each write request (FC06, FC16) from `address` on after after_t."""
+        out = []
+        for line in self.relay.output().splitlines():
+            parts = line.split()
+            if len(parts) == 7 and parts[0] == 'Q':
+                t, unit, fc, start = float(parts[1]), int(parts[3]), int(parts[4]), int(parts[5])
+                if fc in (6, 16) and start == address and t > after_t:
+                    out.append((t, unit))
+        return out
+
+
+def timed_cancel(bench, goal):
+    """Cancel `goal` (a TrajectoryGoal); (when the cancel was sent, when its answer arrived)."""
+    answered, got = [], threading.Event()
+    sent_t = time.monotonic()
+    fut = bench.ros.in_spin(goal.handle.cancel_goal_async)
+    fut.add_done_callback(lambda _f: (answered.append(time.monotonic()), got.set()))
+    assert got.wait(5.0), 'no answer to the cancel'
+    return sent_t, answered[0]
+
+
+def test_xplus_a_cancel_stop_reaches_the_wire_within_a_transaction_of_the_cancel(
+        procs, ros, tmp_path):
+    """The cancel callback hands the joints' stops to the bus owner as urgent jobs: each axis's
+    Halt write (controlword 1040) goes out behind the transaction in flight and the stops
+    before it, two transactions each (statusword, controlword), counted from the cancel's
+    answer reaching the client; the joints' stops waited for the next feedback tick before
+    (up to 0.1 s plus the executor's time). Three cancels at random points of a tick."""
+    transaction_s = 0.005            # one Modbus TCP transaction on loopback, with margin
+    xplus = XplusRelayed(procs, ros, tmp_path)
+    for d in xplus.drives:
+        xplus.enable(d)
+    for k in range(3):
+        before = xplus.status('axis1', lambda m: not m.moving, 10.0, 'at rest').position
+        sign = 1.0 if before < 10.0 else -1.0
+        g = Goal(xplus, FollowJointTrajectory.Goal(trajectory=trajectory(
+            ['xplus_joint1', 'xplus_joint2'], [(4.0, [before + 12.0 * sign, 6.0 * sign])])))
+        xplus.status('axis1', lambda m: m.moving, 5.0, 'following')
+        time.sleep(0.3 + 0.1 * k / 3)             # a different phase of the 10 Hz feedback
+        sent_t, answered_t = timed_cancel(xplus, g)
+        g.result(5.0)
+        assert g.status == GoalStatus.STATUS_CANCELED
+        halts = {}
+        wait_for(lambda t0=sent_t: len({u for _t, u in xplus.writes(1040, t0)}) == 2, 2.0,
+                 'both Halt writes')
+        for t, unit in xplus.writes(1040, sent_t):
+            halts.setdefault(unit, t - answered_t)
+        assert halts[1] <= 2 * transaction_s, (k, halts)
+        assert halts[2] <= 4 * transaction_s, (k, halts)
+        for d in xplus.drives:
+            xplus.status(d, lambda m: not m.moving, 2.0, f'{d} stopped by the cancel')
 
 
 def test_xplus_a_new_trajectory_replaces_the_old_and_an_empty_one_stops(xplus):

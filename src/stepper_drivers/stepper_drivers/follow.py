@@ -65,7 +65,21 @@ INVALID_JOINTS = -2
 OLD_HEADER_TIMESTAMP = -3
 PATH_TOLERANCE_VIOLATED = -4
 GOAL_TOLERANCE_VIOLATED = -5
-REPLACED = 'replaced by a newer trajectory'
+# A run a newer trajectory took over ends aborted with INVALID_GOAL, as JointTrajectoryController
+# ends a preempted goal ("Current goal preempted by new incoming action.")
+REPLACED = 'replaced by a newer goal or joint_trajectory message'
+# A goal position tolerance in steps comes from joint units (step size x n is n within a few
+# ulp): a position this close beyond it is within it.
+ROUNDING_STEPS = 1e-6
+
+
+class GoalError(TrajectoryError):
+    """A trajectory refused before anything moves, with the FollowJointTrajectory result code
+    of its cause."""
+
+    def __init__(self, code: int, text: str):
+        super().__init__(text)
+        self.code = code
 
 
 @dataclasses.dataclass
@@ -134,8 +148,10 @@ class Tolerances:
 
     Path (position, velocity): absent or 0: not checked. Goal position: absent or 0: one step
     (the drive's resolution); None: not checked. Goal velocity: absent or 0: standstill (the
-    drive's own moving flag); None: not checked; > 0: |velocity| within it. goal_time_s: 0 no
-    limit (until every joint stands still, at most GOAL_WAIT_MAX_S)."""
+    drive's own moving flag); None: not checked; > 0: |velocity| within it, a drive that
+    reports standstill counting as 0 (a velocity reading can be older than its moving flag:
+    the RD4 refreshes it once a second) and a moving one that reports no velocity as outside.
+    goal_time_s: 0 no limit (until every joint stands still, at most GOAL_WAIT_MAX_S)."""
 
     path_steps: dict[str, float] = dataclasses.field(default_factory=dict)
     goal_steps: dict[str, float | None] = dataclasses.field(default_factory=dict)
@@ -160,7 +176,9 @@ class Run:
         self.done: concurrent.futures.Future = concurrent.futures.Future()
         self.end_t = start_t + (traj.points[-1].time_s if traj.points else 0.0)
         self._cancel = threading.Event()
-        self._cancel_why = ''
+        # how the run ends when _cancel is set: canceled by the client, or ended from outside
+        # (Follower.stop); written before _cancel is set, under the follower's submit_lock
+        self._end: Outcome | None = None
         self._replaced_at: float | None = None
         self._jobs: list[concurrent.futures.Future] = []
         self._streams: list[concurrent.futures.Future] = []
@@ -213,9 +231,27 @@ class Run:
                 f"the moves of its axes) or as long as the joints' accelerations need; the "
                 f'plan passes the merged points within {far}')
 
-    def cancel(self, why: str) -> None:
-        self._cancel_why = why
-        self._cancel.set()
+    def cancel(self, why: str, hand_over: bool = False) -> None:
+        """The client canceled: the run ends 'canceled' and its joints stop now, their stops
+        urgent jobs queued before this returns (hand_over: taken by idle owners by then), so
+        they reach the wire behind at most the transaction in flight. A run a newer trajectory
+        has taken over stops nothing: its joints are the newer one's."""
+        self._finish(Outcome('canceled', SUCCESSFUL, why), hand_over)
+
+    def abort(self, code: int, why: str) -> None:
+        """Ended from outside (an empty trajectory on the topic, the node's shutdown or
+        deactivation): the run ends aborted with `code` and its joints stop."""
+        self._finish(_aborted(code, why), False)
+
+    def _finish(self, outcome: Outcome, hand_over: bool) -> None:
+        # under submit_lock: a move of the run thread is either queued before the stops (which
+        # drop it or cut it short) or not sent (the thread sees _cancel before it submits)
+        with self.follower.submit_lock:
+            if self._end is None:
+                self._end = outcome
+            self._cancel.set()
+        if self._replaced_at is None:
+            self._stop_axes(hand_over)
 
     def replace_at(self, t: float) -> None:
         """A newer trajectory takes over from monotonic time t: no segment from then on."""
@@ -241,12 +277,12 @@ class Run:
         for seg in self.segments:
             seg_t = self.start_t + seg.start_s
             if self._replaced_at is not None and seg_t >= self._replaced_at:
-                return _aborted(SUCCESSFUL, REPLACED)
+                return _aborted(INVALID_GOAL, REPLACED)
             problem = self._wait_until(seg_t)
             if problem is not None:
                 return problem
             if self._replaced():
-                return _aborted(SUCCESSFUL, REPLACED)
+                return _aborted(INVALID_GOAL, REPLACED)
             # The moves go out back to back. An axis still on its way to the point before (it
             # arrived late, _still_on_the_way) gets its move once it stands there, so that it
             # passes the point; one that is there, or was on plan at its last snapshot (on a
@@ -267,8 +303,10 @@ class Run:
                             move.target_steps):
                         continue
                     with self.follower.submit_lock:
+                        if self._cancel.is_set():
+                            return self._end
                         if self._replaced():
-                            return _aborted(SUCCESSFUL, REPLACED)
+                            return _aborted(INVALID_GOAL, REPLACED)
                         self._jobs.append(axis.sup.submit(axis.drive_name, Command.move(
                             self._move_job(axis, move, previous[move.joint], seg_t, end_t),
                             f'trajectory segment to {move.target_steps:g} steps')))
@@ -287,7 +325,7 @@ class Run:
             axis = self.follower.axes[joint]
             axis.sup.poll_soon(axis.drive_name)
         if self._replaced_at is not None:
-            return _aborted(SUCCESSFUL, REPLACED)
+            return _aborted(INVALID_GOAL, REPLACED)
         # goal_time_tolerance 0: no time limit (JointTrajectoryController's meaning), here until
         # every joint stands still, at most GOAL_WAIT_MAX_S
         deadline = self.end_t + (self.tol.goal_time_s or GOAL_WAIT_MAX_S)
@@ -395,9 +433,9 @@ class Run:
 
     def _check(self) -> Outcome | None:
         if self._cancel.is_set():
-            return Outcome('canceled', SUCCESSFUL, self._cancel_why or 'canceled')
+            return self._end
         if self._replaced():
-            return _aborted(SUCCESSFUL, REPLACED)
+            return _aborted(INVALID_GOAL, REPLACED)
         for fut in self._jobs:
             if fut.done() and fut.exception() is not None:
                 self._stop_axes()
@@ -444,25 +482,28 @@ class Run:
             if tol is not None:
                 tol = tol or 1.0                          # the default: the final step
                 err = axis.position_steps() - self.final_steps[joint]
-                if abs(err) > tol:
-                    why.append(f'{err:+.0f} steps from the goal (goal tolerance {tol:g} steps)')
+                if abs(err) > tol + ROUNDING_STEPS:
+                    why.append(f'{err:+.0f} steps from the goal (goal tolerance {tol:.6g} '
+                               'steps)')
             vtol = self.tol.goal_velocity_steps_s.get(joint, 0.0)
-            if vtol is None:
-                pass
-            elif vtol > 0:
-                velocity = axis.velocity_steps_s()
-                if velocity is not None and abs(velocity) > vtol:
-                    why.append(f'at {velocity:+.0f} steps/s (goal velocity tolerance {vtol:g} '
-                               'steps/s)')
-            elif axis.moving():
+            if vtol is None or not axis.moving():
+                pass                          # not checked, or standing: at velocity 0
+            elif not vtol:
                 why.append('still moving')
+            else:
+                velocity = axis.velocity_steps_s()
+                if velocity is None:
+                    why.append('still moving (its drive reports no velocity)')
+                elif abs(velocity) > vtol:
+                    why.append(f'at {velocity:+.0f} steps/s (goal velocity tolerance {vtol:.6g} '
+                               'steps/s)')
             if why:
                 far.append(f'{joint}: {", ".join(why)}')
         return far
 
-    def _stop_axes(self) -> None:
+    def _stop_axes(self, hand_over: bool = False) -> None:
         for joint in self.traj.joints:
-            self.follower.stop_axis(self.follower.axes[joint], 'trajectory stopped')
+            self.follower.stop_axis(self.follower.axes[joint], 'trajectory stopped', hand_over)
 
 
 class Follower:
@@ -484,32 +525,10 @@ class Follower:
                tol: Tolerances = Tolerances()) -> Run:
         """Plan and start `traj` at monotonic start_t (None: now); TrajectoryError (nothing
         moves) when it cannot be followed."""
-        now = self.clock()
-        start_t = now if start_t is None else start_t
-        if traj.points and start_t + traj.points[-1].time_s < now:
-            ago = now - start_t - traj.points[-1].time_s
-            raise TrajectoryError(f'the trajectory ended {ago:.3f} s ago (header.stamp plus '
-                                  'the last time_from_start)')
-        if any(self.axes[j].interpolated for j in traj.joints) \
-                and start_t < now + STREAM_PREPARE_S \
-                and (self.current is None or self.current.done.done()):
-            # interpolated axes need their drives in mode 7 before the first point: a
-            # trajectory for now starts STREAM_PREPARE_S later, on every axis alike
-            start_t = now + STREAM_PREPARE_S
         with self._lock:
             old = self.current
-            take_over = max(start_t, now)
-            if old is not None and not old.done.done():
-                start_steps = old.desired_steps(take_over)
-                start_steps = {j: start_steps.get(j, self.axes[j].position_steps())
-                               for j in traj.joints}
-            else:
-                start_steps = {j: self.axes[j].position_steps() for j in traj.joints}
-            min_segment_s = self.min_segment_s(traj.joints)
-            segments = plan(traj, start_steps, {j: self.axes[j].limits for j in traj.joints},
-                            from_s=max(0.0, now - start_t), min_segment_s=min_segment_s,
-                            path_tolerance_steps=tol.path_steps,
-                            move_times_s=self.move_times_s(traj.joints))
+            start_t, take_over, start_steps, segments, min_segment_s = self._plan(
+                traj, start_t, tol, old)
             run = Run(self, traj, start_t, start_steps, segments, tol, min_segment_s)
             if old is not None and not old.done.done():
                 old.replace_at(take_over)
@@ -521,6 +540,43 @@ class Follower:
             self.current = run
         run._thread.start()
         return run
+
+    def check(self, traj: Trajectory, start_t: float | None = None,
+              tol: Tolerances = Tolerances()) -> None:
+        """What follow() would refuse if it were called now, without starting anything (the
+        action's goal callback): the TrajectoryError it would raise."""
+        with self._lock:
+            self._plan(traj, start_t, tol, self.current)
+
+    def _plan(self, traj: Trajectory, start_t: float | None, tol: Tolerances,
+              old: Run | None) -> tuple[float, float, dict[str, float], list[Segment], float]:
+        """(start_t, take-over time, start positions, segments, least segment duration) of
+        `traj` planned now, taking over from `old` where it runs."""
+        now = self.clock()
+        start_t = now if start_t is None else start_t
+        if traj.points and start_t + traj.points[-1].time_s < now:
+            ago = now - start_t - traj.points[-1].time_s
+            raise GoalError(OLD_HEADER_TIMESTAMP, f'the trajectory ended {ago:.3f} s ago '
+                            '(header.stamp plus the last time_from_start)')
+        running = old is not None and not old.done.done()
+        if any(self.axes[j].interpolated for j in traj.joints) \
+                and start_t < now + STREAM_PREPARE_S and not running:
+            # interpolated axes need their drives in mode 7 before the first point: a
+            # trajectory for now starts STREAM_PREPARE_S later, on every axis alike
+            start_t = now + STREAM_PREPARE_S
+        take_over = max(start_t, now)
+        if running:
+            start_steps = old.desired_steps(take_over)
+            start_steps = {j: start_steps.get(j, self.axes[j].position_steps())
+                           for j in traj.joints}
+        else:
+            start_steps = {j: self.axes[j].position_steps() for j in traj.joints}
+        min_segment_s = self.min_segment_s(traj.joints)
+        segments = plan(traj, start_steps, {j: self.axes[j].limits for j in traj.joints},
+                        from_s=max(0.0, now - start_t), min_segment_s=min_segment_s,
+                        path_tolerance_steps=tol.path_steps,
+                        move_times_s=self.move_times_s(traj.joints))
+        return start_t, take_over, start_steps, segments, min_segment_s
 
     def move_times_s(self, joints) -> dict[str, tuple[object, float]]:
         """Per joint moved by moves (not streamed): its bus and what a move costs there (the
@@ -553,12 +609,13 @@ class Follower:
             timer.start()
 
     def stop(self, why: str) -> None:
-        """An empty trajectory: stop the joints of the running one, end it."""
+        """An empty trajectory on the topic, the node's shutdown or deactivation: stop the
+        joints of the running trajectory; it ends aborted (INVALID_GOAL, as
+        JointTrajectoryController ends a goal at its deactivation), `why` its text."""
         with self._lock:
             run = self.current
         if run is not None and not run.done.done():
-            run.cancel(why)
-            run._stop_axes()
+            run.abort(INVALID_GOAL, why)
 
     # ------------------------------------------------------------------ interpolated axes
     def stream(self, run: Run) -> list[concurrent.futures.Future]:
@@ -584,8 +641,12 @@ class Follower:
                 futs.append(job.future)
         return futs
 
-    def stop_axis(self, axis: Axis, label: str) -> concurrent.futures.Future:
-        return axis.sup.submit(axis.drive_name, Command.stop(axis.drive.stop, label))
+    def stop_axis(self, axis: Axis, label: str, hand_over: bool = False
+                  ) -> concurrent.futures.Future:
+        """The axis's stop, an urgent job (hand_over: from a ROS callback, as
+        BusSupervisor.submit describes)."""
+        return axis.sup.submit(axis.drive_name, Command.stop(axis.drive.stop, label),
+                               hand_over=hand_over)
 
 
 class Stream:

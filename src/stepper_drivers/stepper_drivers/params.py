@@ -220,6 +220,30 @@ BUS_PARAMS = (
       "loaded machine (as ros2_control's controller_manager asks for); 0 = the normal "
       'scheduler. Needs CAP_SYS_NICE or an rtprio limit (/etc/security/limits.conf); refused: '
       'one warning, and the normal scheduler', 0, 99),
+    # The defaults of follow_joint_trajectory goals, as JointTrajectoryController's parameters
+    # of the same names (a goal's own tolerances replace them: docs/interface.md)
+    P('constraints.goal_time', 0.0, 'follow_joint_trajectory: how long after the last point '
+      'of a goal the joints may take to come within their goal tolerances before the goal '
+      'fails (GOAL_TOLERANCE_VIOLATED) and they stop; 0 = no limit: until every joint stands '
+      "still (at most 10 s), then checked. A goal's goal_time_tolerance > 0 replaces it [s]",
+      0.0, 3600.0, read_only=False),
+    P('constraints.stopped_velocity_tolerance', 0.01, 'follow_joint_trajectory: at the end '
+      "of a goal each joint stands (its drive's moving flag) or moves no faster than this; "
+      "0 = not checked. A goal's goal_tolerance velocity > 0 replaces it for its joint "
+      '[rad/s or m/s]', 0.0, INF, read_only=False),
+)
+
+# Per-joint parameters, declared as constraints.<joint>.<param> (the joint names of the
+# drives): JointTrajectoryController's per-joint constraints. `goal` defaults to one step of
+# the joint's drive (declare_joint_params).
+JOINT_PARAMS = (
+    P('trajectory', 0.0, 'follow_joint_trajectory path tolerance: while a goal runs, the joint '
+      'farther than this from the plan (at the time its position was true) fails the goal '
+      "(PATH_TOLERANCE_VIOLATED) and stops its joints; 0 = not checked. A goal's "
+      'path_tolerance position replaces it [rad or m]', 0.0, INF, read_only=False),
+    P('goal', 0.0, 'follow_joint_trajectory goal tolerance: at the end of a goal the joint '
+      "within this of the last point; 0 = not checked; default one step of the joint's drive. "
+      "A goal's goal_tolerance position replaces it [rad or m]", 0.0, INF, read_only=False),
 )
 
 # Per-drive parameters every node has, declared as drives.<name>.<param>.
@@ -459,6 +483,7 @@ def declare_all(node: Node, vendor: Vendor, args: Sequence[str] = (),
         values[name] = {
             p.name: declare(node, prefix + p.name, p, vendor.drive_defaults.get(p.name), given)
             for p in (*DRIVE_PARAMS, *drive_specs)}
+    declare_joint_params(node, values, given)
     _refuse_unknown(node, given, drive_names)
     rules = functools.partial(validate, vendor_validate=vendor_validate)
     for problem in rules(current_values(node)):
@@ -468,6 +493,23 @@ def declare_all(node: Node, vendor: Vendor, args: Sequence[str] = (),
                                          v['lead_m']), v)
               for name, v in values.items()]
     return BusConfig(bus, drives, rules)
+
+
+def declare_joint_params(node: Node, drives: Mapping[str, Mapping[str, Any]],
+                         given: Mapping[str, Any]) -> None:
+    """constraints.<joint>.* (JOINT_PARAMS) for the joint of each drive in `drives` (drive
+    name: its declared values), once per joint name (validate refuses a name used twice)."""
+    for name, v in drives.items():
+        joint = v['joint_name'] or name
+        try:
+            step = 1.0 / UnitConversion(v['steps_per_rev'], v['gear_ratio'], v['unit'],
+                                        v['lead_m']).steps_per_unit
+        except ValueError:
+            step = 0.0                  # validate names the broken unit parameter
+        for p in JOINT_PARAMS:
+            full = f'constraints.{joint}.{p.name}'
+            if not node.has_parameter(full):
+                declare(node, full, p, step if p.name == 'goal' else None, given)
 
 
 def _refuse_unknown(node: Node, given: Mapping[str, Any], drive_names: Iterable[str]) -> None:

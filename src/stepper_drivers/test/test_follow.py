@@ -1,6 +1,7 @@
 """Follower (follow.py) against the X-PLUS MT simulator through a real BusSupervisor, no ROS:
-axes that start together and arrive together, replaced and empty trajectories, a segment that
-fails, tolerances. Bounds come from the settings: the poll period and one transaction."""
+axes that start together and arrive together, replaced, canceled and empty trajectories, a
+segment that fails, tolerances. Bounds come from the settings: the poll period and one
+transaction."""
 
 import dataclasses
 import time
@@ -8,7 +9,8 @@ import time
 import pytest
 
 from stepper_drivers.commands import Command
-from stepper_drivers.follow import REPLACED, Axis, Follower
+from stepper_drivers.follow import (INVALID_GOAL, OLD_HEADER_TIMESTAMP, REPLACED, SUCCESSFUL,
+                                    Axis, Follower, GoalError)
 from stepper_drivers.supervisor import COMMAND, BusSupervisor
 from stepper_sim.harness import wait_for
 from stepper_drivers.trajectory import JointLimits, TrajectoryError, build
@@ -109,7 +111,11 @@ def test_a_newer_trajectory_replaces_the_rest_of_the_old_from_its_start(rig):
     seen, seen_t = sup.slots['axis2'].sample          # j2 as last polled before the take-over
     new = follower.follow(build(['j1'], [0.4], [[0]], known=JOINTS))
     asked_t = time.monotonic()
-    assert old.done.result(2.0).text == REPLACED
+    replaced = old.done.result(2.0)
+    # JointTrajectoryController's code for a preempted goal: not SUCCESSFUL, which MoveIt would
+    # log as "successfully finished" before the ABORTED status
+    assert replaced.status == 'aborted' and replaced.code == INVALID_GOAL, replaced
+    assert replaced.text == REPLACED
     assert new.done.result(3.0).status == 'succeeded'
     assert abs(true_steps(sim, 'j1')) <= 2
     # j2 is not in the newer one: it stops at the take-over, from where it really was and as
@@ -131,9 +137,47 @@ def test_an_empty_trajectory_stops_the_running_one(rig):
     wait_for(lambda: abs(true_steps(sim, 'j1')) > 2000, 2.0, 'motion')
     follower.stop('empty trajectory')
     outcome = run.done.result(2.0)
-    assert outcome.status == 'canceled'
+    # not reached: aborted, with a code that says so (an ABORTED goal with code 0 is read as a
+    # success by MoveIt's log)
+    assert (outcome.status, outcome.code, outcome.text) == (
+        'aborted', INVALID_GOAL, 'empty trajectory')
     wait_for(lambda: not any(s.state.moving for s in sup.slots.values()), 2.0, 'standstill')
     assert abs(true_steps(sim, 'j1')) < 30_000
+
+
+def test_a_cancel_stops_the_joints_before_it_returns(rig):
+    """Run.cancel (the action's cancel callback) hands the joints' stops to the bus owner as
+    urgent jobs: each drive has its Halt (controlword bit 8) behind the transaction in flight
+    and the stops before it (two transactions each: statusword, controlword), not at the
+    run's next check; the run ends canceled with SUCCESSFUL, JointTrajectoryController's
+    canceled result."""
+    from stepper_drivers.cia402 import CW_BIT_HALT
+    sim, sup, follower = rig
+    run = follower.follow(build(JOINTS, [2.0], [[40_000, -40_000]], known=JOINTS))
+    wait_for(lambda: abs(true_steps(sim, 'j1')) > 2000, 2.0, 'motion')
+    t0 = time.monotonic()
+    run.cancel('canceled by the client', hand_over=True)
+    halted = {}
+    while len(halted) < 2 and time.monotonic() - t0 < 1.0:
+        for name in ('axis1', 'axis2'):
+            if name not in halted and sim.drives[name].register('CONTROL_WORD') & CW_BIT_HALT:
+                halted[name] = time.monotonic() - t0
+        time.sleep(0.0005)
+    assert halted.get('axis1', 1.0) <= 3 * TRANSACTION_S, halted
+    assert halted.get('axis2', 1.0) <= 5 * TRANSACTION_S, halted
+    outcome = run.done.result(2.0)
+    assert (outcome.status, outcome.code) == ('canceled', SUCCESSFUL), outcome
+    wait_for(lambda: not any(s.state.moving for s in sup.slots.values()), 2.0, 'standstill')
+    assert abs(true_steps(sim, 'j1')) < 30_000
+
+
+def test_a_trajectory_that_ended_is_refused_with_its_code(rig):
+    """The result code comes with the refusal, set where the cause is found."""
+    sim, sup, follower = rig
+    with pytest.raises(GoalError, match='ended') as refused:
+        follower.follow(build(['j1'], [0.5], [[1000]], known=JOINTS),
+                        start_t=time.monotonic() - 1.0)
+    assert refused.value.code == OLD_HEADER_TIMESTAMP
 
 
 def test_a_move_sent_late_catches_up_within_the_joints_limits():
