@@ -1,7 +1,10 @@
 """The README's main command: scripts/demo.py runs every vendor, writes the plot, leaves nothing.
 
 The demo runs as a subprocess with a marker in its environment, which every process it starts
-inherits; afterwards no process on the machine may carry the marker.
+inherits; afterwards no process on the machine may carry the marker (the Vector Step node's SYNC
+producer process included). The Vector Step demo also runs beside two busy loops (a user's busy
+laptop, a loaded CI machine): its drives watch the node's SYNC (0x1006) and faulted "missing
+SYNC" there once; STEPPER_DEMO_LOAD_RUNS=10 runs it ten times in a row.
 """
 
 import os
@@ -10,6 +13,8 @@ import subprocess
 import sys
 import time
 import uuid
+
+import pytest
 
 from rosharness import ROOT
 
@@ -46,4 +51,25 @@ def test_demo_moves_every_drive_plots_and_cleans_up(tmp_path):
     for png in (plot, tmp_path / 'positions_paths.png'):
         data = png.read_bytes()
         assert data[:8] == b'\x89PNG\r\n\x1a\n' and len(data) > 20_000
+    assert processes_with(marker) == []
+
+
+LOAD_RUNS = int(os.environ.get('STEPPER_DEMO_LOAD_RUNS', '1'))
+
+
+@pytest.mark.parametrize('run', range(LOAD_RUNS))
+def test_the_vector_step_demo_passes_beside_two_busy_loops(run, tmp_path):
+    marker = f'STEPPER_DEMO_TEST_{uuid.uuid4().hex}'
+    loops = [subprocess.Popen([sys.executable, '-c', 'while True: pass']) for _ in range(2)]
+    try:
+        r = subprocess.run([sys.executable, str(ROOT / 'scripts' / 'demo.py'),
+                            '--vendor', 'vector_step', '--plot', str(tmp_path / 'p.png')],
+                           capture_output=True, text=True, timeout=150,
+                           env={**os.environ, marker: '1'})
+    finally:
+        for p in loops:
+            p.kill()
+            p.wait()
+    assert r.returncode == 0, f'{r.stderr[-3000:]}\n{r.stdout[-3000:]}'
+    assert 'demo OK' in r.stdout and 'missing SYNC' not in r.stdout
     assert processes_with(marker) == []

@@ -12,6 +12,8 @@ hardware only changes `can.interface`/`can.channel`. Only the subset of the sock
     client: < send 601 8 40 0 10 0 0 0 0 0 >
     others: < frame 601 1700000000.000123 4000100000000000 >
 
+A client that stays in BCM mode (no `< rawmode >`) may send frames the same way and gets none
+(the node's SYNC and heartbeat producer, stepper_drivers.protocol.canopen_producers, is one).
 python-can compares the whole of one recv() with "< hi >" / "< ok >" during the handshake, so the
 broker sends them on their own and holds frames for a new client for `ready_delay_s` after its
 "< ok >" to rawmode (they are queued, not dropped). Remote (RTR) frames cannot be carried: the
@@ -202,7 +204,9 @@ class SocketcandBroker:
         if not words:
             return
         verb = words[0]
-        if verb == 'send' and client.raw and len(words) >= 3:
+        if verb == 'send' and client.channel is not None and len(words) >= 3:
+            # rawmode, or BCM mode (a client that only sends: the node's SYNC producer); a
+            # client in BCM mode gets no frames (no `subscribe` here)
             self._relay(client, words)
         elif verb == 'open' and len(words) == 2:
             client.channel = words[1]

@@ -3,11 +3,15 @@
 `CanBus` is one python-can bus (socketcand to the loopback broker in tests, `socketcan` `can0`
 on hardware) with one `canopen.Network`. While it is open it produces what the drives watch:
 SYNC every `sync_period_s` (the drives' 0x1006 watchdog) and a heartbeat of its own
-(`master_node_id`, every `master_heartbeat_ms`; the drives' 0x1016 consumer), both python-can
-periodic tasks that end with the bus or the process. Frames that do not fit what a subscribed
-COB-ID carries (length, heartbeat state) are dropped, counted as link errors and logged in one
-line (`CheckedNetwork`); so are the error frames the interface reports, which canopen ignores
-(`error_frames`, and `bus_off` where SocketCAN's encoding tells it; `CheckedListener`).
+(`master_node_id`, every `master_heartbeat_ms`; the drives' 0x1016 consumer), from a producer
+the node's other threads cannot hold up (canopen_producers: a process of its own on socketcand,
+the kernel on socketcan, a thread at the owners' real-time priority elsewhere) that ends with
+the bus or the process; when the SYNCs went out is kept (`sync_record`): the largest gap and a
+WARN as it nears the drives' 0x1006 time are in health() and counters(). Frames that do not fit
+what a subscribed COB-ID carries (length, heartbeat state) are dropped, counted as link errors
+and logged in one line (`CheckedNetwork`); so are the error frames the interface reports, which
+canopen ignores (`error_frames`, and `bus_off` where SocketCAN's encoding tells it;
+`CheckedListener`).
 Every drive on the bus is a `RemoteDrive` (a `canopen.BaseNode402` plus what the library leaves
 to the application):
   - a boot-up latch armed before an NMT reset (NmtMaster.wait_for_bootup() only looks at the
@@ -41,6 +45,8 @@ from canopen.sdo.base import SdoVariable
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
 from ..drive import Bus, DriveError, LinkError, Steps
+from .canopen_producers import (PERSISTENT_ERRORS, Cyclic, ProducerProcess, ProducerThread,
+                                SyncRecord)
 from .cia301 import (EMCY_NO_ERROR, PDO_COB_BASES_RX, PDO_COB_BASES_TX, PDO_INVALID,
                      RPDO_COMMUNICATION, RPDO_MAPPING, TPDO_COMMUNICATION, TPDO_MAPPING,
                      abort_text, mapping_entry)
@@ -59,7 +65,16 @@ NMT_COMMANDS = {'OPERATIONAL': 0x01, 'STOPPED': 0x02, 'PRE-OPERATIONAL': 0x80,
                 'RESET': 0x81, 'RESET COMMUNICATION': 0x82}
 NMT_STATES = {0x00: 'BOOT-UP', 0x04: 'STOPPED', 0x05: 'OPERATIONAL', 0x7F: 'PRE-OPERATIONAL'}
 SYNC_COB_ID = 0x080            # 0x1005 default ("0x80 or 0x80000080")
-PERIODIC_JOIN_MARGIN_S = 0.5   # close() waits a cyclic task's period plus this for its thread
+# [COMMUNICATION CYCLE PERIOD] 0x1006 (us; 0 = not used): a drive that gets no SYNC for that long
+# raises its "missing SYNC" alarm (Ralarm32 bit 18); what a drive was written is what the link
+# watches its SYNC gaps against (RemoteDrive.write, CanBus.sync_watch)
+COMMUNICATION_CYCLE_PERIOD = 0x1006
+# A gap between SYNCs of this share of the smallest 0x1006 time (and of at least this many SYNC
+# periods) is a WARN in health(): the SYNC is late, the drives have not faulted yet.
+SYNC_GAP_WARN_SHARE = 0.5
+SYNC_GAP_WARN_PERIODS = 1.5
+# python-can's own SYNC for these interfaces: the kernel's broadcast manager (no thread of ours)
+KERNEL_PERIODIC_INTERFACES = ('socketcan',)
 GARBAGE_LOG_PERIOD_S = 10.0    # one log line per COB-ID and period for frames that do not fit
 PDO_STRUCT_CHARS = {datatypes.INTEGER8: 'b', datatypes.INTEGER16: 'h', datatypes.INTEGER32: 'i',
                     datatypes.UNSIGNED8: 'B', datatypes.UNSIGNED16: 'H',
@@ -80,6 +95,9 @@ CAN_ERR_CRTL_STATES = {0x01: 'RX overflow', 0x02: 'TX overflow', 0x04: 'RX warni
                        0x08: 'TX warning', 0x10: 'RX error passive', 0x20: 'TX error passive',
                        0x40: 'error active again'}
 MASTER = '(this node)'         # CanBus._node_ids value of the node's own heartbeat node-ID
+# A producer refused its real-time priority: said once per process (as the bus owners do).
+_refusal_lock = threading.Lock()
+_refusal_told = False
 
 
 class SdoAbortError(DriveError):
@@ -154,7 +172,8 @@ class CanBus(Bus):
     def __init__(self, interface: str = 'socketcand', channel: str = 'can0',
                  bitrate: int = 125000, host: str = '127.0.0.1', port: int = 29536,
                  timeout_s: float = 0.5, sync_period_s: float = 0.0,
-                 master_node_id: int = 127, master_heartbeat_ms: int = 0):
+                 master_node_id: int = 127, master_heartbeat_ms: int = 0,
+                 owner_thread_priority: int = 0):
         self.interface = interface
         self.channel = channel
         self.bitrate = int(bitrate)
@@ -164,11 +183,20 @@ class CanBus(Bus):
         self.sync_period_s = float(sync_period_s)         # 0: no SYNC producer
         self.master_node_id = int(master_node_id)
         self.master_heartbeat_ms = int(master_heartbeat_ms)   # 0: no heartbeat of our own
+        # the SYNC and heartbeat producer's real-time priority: the bus owners' (SCHED_FIFO,
+        # 1..99; 0: the normal scheduler), whichever thread opens the bus
+        self.owner_thread_priority = int(owner_thread_priority)
         self.network: canopen.Network | None = None
         self.generation = 0              # +1 at every open(): drives re-attach their nodes
-        # the SYNC and heartbeat producers (python-can cyclic tasks), stopped and joined by close()
-        self._sync_task: Any = None
-        self._heartbeat_task: Any = None
+        # The SYNC and heartbeat producer (canopen_producers), started by open(), stopped by
+        # close(): a ProducerProcess or ProducerThread, or on socketcan the kernel's cyclic
+        # tasks (python-can send_periodic) by name ('sync', 'heartbeat').
+        self._producer: ProducerProcess | ProducerThread | None = None
+        self._kernel_tasks: dict[str, Any] = {}
+        self.sync_record = SyncRecord()  # when the SYNCs went out
+        # 0x1006 [s] of each drive as written (RemoteDrive.write); 0 = not watched
+        self.sync_timeouts: dict[str, float] = {}
+        self._send_error_logged = -GARBAGE_LOG_PERIOD_S
         self._node_ids: dict[int, str] = {}
         if self.master_heartbeat_ms:
             self._node_ids[self.master_node_id] = MASTER
@@ -221,19 +249,13 @@ class CanBus(Bus):
         try:
             network.connect(**self._bus_kwargs())
             # The drives' watchdogs: a missing SYNC is a drive alarm (0x1006, Ralarm32 bit 18),
-            # a missing heartbeat only their LED (0x1016). Periodic tasks: they stop with the
-            # bus (close) and with the process.
+            # a missing heartbeat only their LED (0x1016). They stop with the bus (close) and
+            # with the process.
             network.sync.cob_id = SYNC_COB_ID
-            if self.sync_period_s:
-                self._sync_task = self._periodic(network, SYNC_COB_ID, b'',
-                                                 self.sync_period_s)
-            if self.master_heartbeat_ms:
-                self._heartbeat_task = self._periodic(
-                    network, 0x700 + self.master_node_id, bytes([0x05]),
-                    self.master_heartbeat_ms / 1000.0)
+            self._start_producer(network)
         except (can.CanError, OSError, ValueError, TimeoutError) as exc:
             try:
-                self._stop_periodic()
+                self._stop_producer()
                 network.disconnect()
             except Exception:  # noqa: BLE001 - half-open: close what there is
                 pass
@@ -243,50 +265,150 @@ class CanBus(Bus):
         logger.info('opened %s%s', self.description,
                     f', SYNC every {self.sync_period_s:g} s' if self.sync_period_s else '')
 
+    # The producer ------------------------------------------------------------------------------
+    def _frames(self) -> list[Cyclic]:
+        frames = []
+        if self.sync_period_s:
+            frames.append(Cyclic('sync', SYNC_COB_ID, b'', self.sync_period_s))
+        if self.master_heartbeat_ms:
+            frames.append(Cyclic('heartbeat', 0x700 + self.master_node_id, bytes([0x05]),
+                                 self.master_heartbeat_ms / 1000.0))
+        return frames
+
+    def _start_producer(self, network: canopen.Network) -> None:
+        """SYNC and heartbeat (open(), the opening thread): see canopen_producers for which
+        producer a link gets, and why."""
+        frames = self._frames()
+        self.sync_record.restart()
+        if not frames:
+            return
+        name = f'SYNC producer {self.description}'
+        if self.interface == 'socketcand':
+            producer = ProducerProcess(name, frames, self.host, self.port, self.channel,
+                                       self.sync_record, self.owner_thread_priority,
+                                       self._refused, self._send_errors)
+            producer.start()
+            self._producer = producer
+        elif self.interface in KERNEL_PERIODIC_INTERFACES:
+            # The kernel sends them (no thread of ours); the node receives its own SYNCs from
+            # the kernel's loopback with the kernel's time: the record takes them from there.
+            network.subscribe(SYNC_COB_ID, self._sync_seen)
+            for frame in frames:
+                self._kernel_tasks[frame.name] = network.bus.send_periodic(
+                    can.Message(arbitration_id=frame.cob_id, data=frame.data,
+                                is_extended_id=False), frame.period_s)
+        else:
+            producer = ProducerThread(name, frames, network.send_message, self.sync_record,
+                                      self.owner_thread_priority, self._refused,
+                                      self._send_errors)
+            producer.start()
+            self._producer = producer
+
+    def _sync_seen(self, _can_id: int, _data: bytearray, timestamp: float) -> None:
+        """(Receive thread, socketcan) a SYNC the kernel sent, at its time.time() stamp."""
+        t = timestamp - (time.time() - time.monotonic())
+        self.sync_record.merge(1, t, t, 0.0)
+
+    def _refused(self, why: str) -> None:
+        global _refusal_told
+        with _refusal_lock:
+            told, _refusal_told = _refusal_told, True
+        if not told:
+            logger.warning('%s: the SYNC and heartbeat producer: owner_thread_priority %d: %s: '
+                           'it runs on the normal scheduler (a loaded machine may delay the '
+                           'SYNC); allow it as for the bus owners (docs/vector_step.md)',
+                           self.description, self.owner_thread_priority, why)
+
+    def _send_errors(self, count: int, text: str) -> None:
+        """(The producer's thread, or the node's link thread of its process) failed sends:
+        link errors; one log line per GARBAGE_LOG_PERIOD_S."""
+        self.errors += count
+        now = time.monotonic()
+        if now - self._send_error_logged >= GARBAGE_LOG_PERIOD_S:
+            self._send_error_logged = now
+            logger.warning('%s: link error: a cyclic frame was not sent: %s (%d failed sends so '
+                           'far; the next goes on time)', self.description, text,
+                           self.sync_record.errors)
+
+    def _stop_producer(self) -> None:
+        """Stop the producer and wait for it: a process or thread that outlived close() would
+        send on a closed bus."""
+        producer, self._producer = self._producer, None
+        tasks, self._kernel_tasks = self._kernel_tasks, {}
+        if producer is not None:
+            producer.stop()
+        for task in tasks.values():
+            task.stop()
+
     # SYNC from the bus owner (interpolated position mode): one set point per drive, then one
     # SYNC, so a drive's two-position buffer neither runs dry (EMCY FF03) nor over.
     def own_sync(self) -> None:
-        """The periodic SYNC producer stops; the owner sends each SYNC (send_sync)."""
-        task, self._sync_task = self._sync_task, None
+        """The periodic SYNC stops (the heartbeat goes on); the owner sends each SYNC
+        (send_sync). Returns once the producer has confirmed it (at most PAUSE_TIMEOUT_S)."""
+        task = self._kernel_tasks.pop('sync', None)
         if task is not None:
             task.stop()
+        if self._producer is not None and self.sync_period_s \
+                and not self._producer.pause('sync'):
+            logger.warning('%s: the SYNC producer did not confirm the pause: a periodic SYNC '
+                           'may still come', self.description)
 
     def send_sync(self) -> None:
         if self.network is not None:
+            self.sync_record.sent(time.monotonic())
             self.network.sync.transmit()
             self.transactions += 1
 
     def periodic_sync(self) -> None:
         """The periodic producer again (the drives' 0x1006 watchdog needs it)."""
-        if self.network is not None and self.sync_period_s and self._sync_task is None:
-            self._sync_task = self._periodic(self.network, SYNC_COB_ID, b'', self.sync_period_s)
+        network = self.network
+        if network is None or not self.sync_period_s:
+            return
+        if self._producer is not None:
+            self._producer.resume('sync')
+        elif self.interface in KERNEL_PERIODIC_INTERFACES and 'sync' not in self._kernel_tasks:
+            self._kernel_tasks['sync'] = network.bus.send_periodic(
+                can.Message(arbitration_id=SYNC_COB_ID, data=b'', is_extended_id=False),
+                self.sync_period_s)
 
-    @staticmethod
-    def _periodic(network: canopen.Network, cob_id: int, data: bytes, period_s: float) -> Any:
-        return network.bus.send_periodic(
-            can.Message(arbitration_id=cob_id, data=data, is_extended_id=False), period_s)
+    def sync_watch(self, name: str, timeout_s: float) -> None:
+        """A drive's 0x1006 time [s] (0: not watched): the SYNC gaps are judged against the
+        smallest."""
+        if timeout_s > 0:
+            self.sync_timeouts[name] = timeout_s
+        else:
+            self.sync_timeouts.pop(name, None)
 
-    def _stop_periodic(self) -> None:
-        """Stop the SYNC and heartbeat producers and wait for their threads: python-can's
-        task.stop() only sets a flag, and bus.shutdown() closes the socket right after, so a
-        task woken in between sent on a closed socket ('Exception in thread Cyclic send task
-        for 0x80 ... Bad file descriptor', seen in CI)."""
-        tasks = [t for t in (self._sync_task, self._heartbeat_task) if t is not None]
-        self._sync_task = self._heartbeat_task = None
-        for task in tasks:
-            task.stop()
-        for task in tasks:
-            thread = getattr(task, 'thread', None)     # ThreadBasedCyclicSendTask
-            if thread is not None and thread is not threading.current_thread():
-                # it notices the stop after its sleep: at most one period
-                thread.join(getattr(task, 'period', 0.0) + PERIODIC_JOIN_MARGIN_S)
+    @property
+    def producer_pid(self) -> int | None:
+        """The process id of the SYNC producer's process (socketcand), else None."""
+        producer = self._producer
+        return producer.pid if isinstance(producer, ProducerProcess) else None
+
+    @property
+    def producer_tid(self) -> int | None:
+        """The thread id of the SYNC producer's thread (interfaces other than socketcand and
+        socketcan), else None."""
+        producer = self._producer
+        return producer.native_id if isinstance(producer, ProducerThread) else None
+
+    def _producer_failure(self) -> str:
+        """Why the producer no longer sends, or ''."""
+        producer = self._producer
+        if producer is not None and producer.failure:
+            return producer.failure
+        record = self.sync_record
+        if record.failing >= PERSISTENT_ERRORS:
+            return (f'{record.failing} cyclic frames in a row not sent, last: '
+                    f'{record.last_error}')
+        return ''
 
     def close(self) -> None:
         network, self.network = self.network, None
         if network is None:
             return
         try:
-            self._stop_periodic()
+            self._stop_producer()
             network.disconnect()
         except Exception as exc:  # noqa: BLE001 - a dead bus may fail to close in any way
             logger.debug('closing %s: %s', self.description, exc)
@@ -297,13 +419,16 @@ class CanBus(Bus):
 
     @property
     def receiving(self) -> bool:
-        """Open, and its receive thread has not died (check() would not raise)."""
+        """Open, its receive thread has not died and its SYNC producer sends (check() would not
+        raise)."""
         network = self.network
         return network is not None and (network.notifier is None
-                                        or network.notifier.exception is None)
+                                        or network.notifier.exception is None) \
+            and not self._producer_failure()
 
     def check(self) -> canopen.Network:
-        """The network, or LinkError when closed or its receive thread died."""
+        """The network, or LinkError when closed, its receive thread died, or its SYNC
+        producer has ended or fails to send (the owner then reconnects: a new producer)."""
         network = self.network
         if network is None:
             raise LinkError(f'{self.description} is closed')
@@ -311,6 +436,9 @@ class CanBus(Bus):
             network.check()
         except Exception as exc:  # noqa: BLE001 - whatever killed the notifier thread
             raise LinkError(f'{self.description}: receive thread stopped: {exc}') from None
+        failure = self._producer_failure()
+        if failure:
+            raise LinkError(f'{self.description}: SYNC and heartbeat not sent: {failure}')
         return network
 
     def send(self, can_id: int, data: bytes) -> None:
@@ -321,7 +449,21 @@ class CanBus(Bus):
             raise LinkError(f'{self.description}: send 0x{can_id:03X} failed: {exc}') from None
 
     def counters(self) -> dict[str, int]:
-        return {'transactions': self.transactions, 'errors': self.errors, **self.extra}
+        out = {'transactions': self.transactions, 'errors': self.errors, **self.extra}
+        if self.sync_period_s:
+            out['sync_gap_max_ms'] = round(self._sync_gap_s() * 1000.0)
+        return out
+
+    def _sync_gap_s(self) -> float:
+        """The largest gap between SYNCs within HEALTH_WINDOW_S, and the open one (none while
+        closed, or on the kernel's producer: the record hears of its SYNCs late when the
+        receive thread is)."""
+        producer = self._producer
+        if producer is not None:
+            producer.refresh()
+        open_slack = getattr(producer, 'slack_s', 0.0) if self.network is not None \
+            and producer is not None else None
+        return self.sync_record.gap_max_s(HEALTH_WINDOW_S, open_slack)
 
     def garbage(self, can_id: int, data: bytes, problem: str) -> None:
         """A received frame that does not fit its COB-ID (receive thread): count, log a line."""
@@ -358,17 +500,47 @@ class CanBus(Bus):
     def health(self) -> tuple[str, str] | None:
         """An error frame within the last HEALTH_WINDOW_S: 'warn' (the controller saw errors:
         wiring, termination, a bit rate that differs); a bus-off: 'error' (the controller
-        stopped sending until it recovers: no SYNC, no command reaches a drive). The text stays
-        the same while it lasts (a status goes out when its alarms change); the counts are in
+        stopped sending until it recovers: no SYNC, no command reaches a drive). A gap between
+        SYNCs within HEALTH_WINDOW_S (or one still open) that nears the smallest 0x1006 time of
+        the drives (SYNC_GAP_WARN_SHARE of it): 'warn', naming both, before the drives fault;
+        'error' once it is that long (they fault: missing SYNC); a SYNC producer that ended
+        or fails to send: 'error'. The texts stay the same while they last (a status goes out
+        when its alarms change), but that of an open gap, which grows; the counts are in
         counters()."""
         now = time.monotonic()
+        problems: list[tuple[str, str]] = []
         bus_off, last = self._last_bus_off, self._last_error_frame
         if bus_off is not None and now - bus_off < HEALTH_WINDOW_S:
-            return 'error', (f'CAN bus-off within {HEALTH_WINDOW_S:g} s (the controller sends '
-                             'nothing until it recovers)')
-        if last is not None and now - last[0] < HEALTH_WINDOW_S:
-            return 'warn', f'CAN error frames within {HEALTH_WINDOW_S:g} s, last: {last[1]}'
-        return None
+            problems.append(('error', f'CAN bus-off within {HEALTH_WINDOW_S:g} s (the '
+                                      'controller sends nothing until it recovers)'))
+        elif last is not None and now - last[0] < HEALTH_WINDOW_S:
+            problems.append(('warn', f'CAN error frames within {HEALTH_WINDOW_S:g} s, last: '
+                                     f'{last[1]}'))
+        failure = self._producer_failure() if self.network is not None else ''
+        if failure:
+            problems.append(('error', f'SYNC and heartbeat not sent: {failure}'))
+        sync = self._sync_gap_health()
+        if sync is not None:
+            problems.append(sync)
+        if not problems:
+            return None
+        level = 'error' if any(p[0] == 'error' for p in problems) else 'warn'
+        return level, '; '.join(p[1] for p in problems)
+
+    def _sync_gap_health(self) -> tuple[str, str] | None:
+        timeouts = [t for t in self.sync_timeouts.values() if t > 0]
+        if not self.sync_period_s or not timeouts:
+            return None
+        timeout_s = min(timeouts)
+        gap_s = self._sync_gap_s()
+        warn_s = max(SYNC_GAP_WARN_SHARE * timeout_s, SYNC_GAP_WARN_PERIODS * self.sync_period_s)
+        if gap_s < warn_s:
+            return None
+        gap_ms, timeout_ms = round(gap_s * 1000.0), round(timeout_s * 1000.0)
+        if gap_s >= timeout_s:
+            return 'error', (f"SYNC gap {gap_ms} ms: the drives' {timeout_ms} ms "
+                             'sync_timeout_s ran out (missing SYNC)')
+        return 'warn', f"SYNC gap {gap_ms} ms of the drives' {timeout_ms} ms sync_timeout_s"
 
 
 def check_length(length: int, what: str) -> Callable[[bytes], str]:
@@ -614,6 +786,8 @@ class RemoteDrive:
         def do():
             self._entry(node, index, sub).raw = value
         self._sdo(what, do)
+        if index == COMMUNICATION_CYCLE_PERIOD and sub == 0:
+            self.bus.sync_watch(self.name, int(value) / 1e6)
 
     def pdo_struct(self, entries: tuple[tuple[int, int, int], ...]) -> struct.Struct:
         """The layout of a PDO that maps whole-byte integers, from their EDS data types: one
@@ -655,6 +829,8 @@ class RemoteDrive:
         node = self._node()
         self._sdo(f'write 0x{index:04X}:{sub:02X} = {data.hex(" ")}',
                   lambda: node.sdo.download(index, sub, data))
+        if index == COMMUNICATION_CYCLE_PERIOD and sub == 0 and len(data) == 4:
+            self.bus.sync_watch(self.name, int.from_bytes(data, 'little') / 1e6)
 
     # PDO configuration [COME MAPPARE UN PDO] --------------------------------------------------
     def configure_pdo(self, direction: str, number: int,

@@ -1371,7 +1371,8 @@ def make_bus(params: Mapping[str, Any]) -> CanBus:
                   port=int(params['can.port']), timeout_s=float(params['timeout_s']),
                   sync_period_s=float(params['can.sync_period_s']),
                   master_node_id=int(params['can.master_node_id']),
-                  master_heartbeat_ms=int(params['can.master_heartbeat_ms']))
+                  master_heartbeat_ms=int(params['can.master_heartbeat_ms']),
+                  owner_thread_priority=int(params.get('owner_thread_priority', 0)))
 
 
 def make_drive(bus: Bus, name: str, params: Mapping[str, Any]) -> VectorStepDrive:
