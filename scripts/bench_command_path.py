@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Command-path benchmark (issue 9): latency, poll rate and CPU of the nodes, against their limits.
+"""Command-path benchmark: latency, poll rate and CPU of the nodes, against their limits.
 
 Every process is real and separate: simulator, node, a wire probe (scripts/bench_cp_relays.py:
 a Modbus TCP relay, a pty relay or a socketcand client) and a tiny rclpy subscriber; the
@@ -598,7 +598,7 @@ def report_latency(v: Vendor, r: dict) -> None:
               f'p99 {ms(l99)} ms; goal p99 <= {ms(r["goal_first"])} ms: '
               f'{"met" if l99 <= r["goal_first"] else "NOT met"}. The broker\'s figures above '
               "come after this relay's hop and its own fan-out")
-    print(f'   before the bus owner (issue 9): {BEFORE["latency"][v.key]}; floor '
+    print(f'   before the bus owner thread: {BEFORE["latency"][v.key]}; floor '
           f'{BEFORE["floor"]}')
 
 

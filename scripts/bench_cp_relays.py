@@ -219,7 +219,7 @@ def ros_publisher(n: int, status_rate_hz: float = 1.0, diagnostics_rate_hz: floa
     clock), each drive's DriveStatus at status_rate_hz and one DiagnosticArray (a status of 12
     values per drive, built once, stamped anew) at diagnostics_rate_hz, as the node does when
     nothing changes (rclpy, the node's QoS); values: (position, statusword). The floor of an
-    rclpy node that offers the interface at this rate (issue 9's CPU goal)."""
+    rclpy node that offers the interface at this rate (the CPU goal's reference)."""
     import array
     import rclpy
     from builtin_interfaces.msg import Time

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Trajectory benchmark (issue 12): arrival spread at the waypoints and path error, per bus.
+"""Trajectory benchmark: arrival spread at the waypoints and path error, per bus.
 
 Every part is a process of its own (stepper_sim.harness): the vendor's simulator with its line
 timing on (RD4 and X-MIND K: `line_timing:=true`, the baud rate's character times; X-PLUS MT:

@@ -329,7 +329,7 @@ MIDDLEWARE_S = 0.02
 
 
 def watchdog_bound_s(timeout_s, rate_hz, velocity, deceleration, transaction_s):
-    """When a velocity run must have stopped after its last command (issue 9): the watchdog's
+    """When a velocity run must have stopped after its last command: the watchdog's
     command_timeout_s, two poll periods, the stop ramp and the one transaction in flight, plus
     one true-position sample (the standstill is seen at the first unchanged sample) and the
     two middleware hops of the measurement."""

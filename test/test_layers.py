@@ -1,4 +1,4 @@
-"""The import graph runs only downwards (issue 11 item 3).
+"""The import graph runs only downwards.
 
     protocol/  ->  vendors/  ->  supervisor / node / cli / entry points
     (drive.py, the Bus/Drive contract, and the ROS-free helpers sit under all of them;

@@ -1,4 +1,4 @@
-"""The managed (lifecycle) nodes end to end (issue 12): `<key>_lifecycle_node` against its
+"""The managed (lifecycle) nodes end to end: `<key>_lifecycle_node` against its
 simulator, driven through the standard lifecycle services as a lifecycle manager calls them
 (~/get_state, ~/get_available_transitions, ~/change_state).
 """

@@ -1,4 +1,4 @@
-"""What the node publishes, and from which thread (issue 9's CPU work, docs/benchmarks.md).
+"""What the node publishes, and from which thread (its CPU cost: docs/benchmarks.md).
 
 The owner threads publish joint_states, status and /diagnostics; the executor has no timer, so
 it sleeps until a command, a service call or an action comes (each wake-up of rclpy's executor

@@ -1,12 +1,12 @@
-"""One set of parameter rules for start-up and run time (issue 11 item 5).
+"""One set of parameter rules for start-up and run time.
 
 Each vendor's DriveNode is built in this process from its config/<vendor>.yaml (nothing opened or
 spun: the constructor declares the parameters and makes the drives). A value given at start-up
 (-p name:=value) and the same value set at run time (Node.set_parameters, what `ros2 param set`
 calls through the parameter service) are refused with the same line: both are the pure
-`validate(params)` of params.py and the vendor module. Run time builds no drive or bus (before
-issue 11 it built throwaway ones, and the X-MIND K constructor records its address in the
-bus it is given).
+`validate(params)` of params.py and the vendor module. Run time builds no drive or bus (a
+throwaway one would be wrong: the X-MIND K constructor records its address in the bus it is
+given).
 """
 
 from __future__ import annotations

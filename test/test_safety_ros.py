@@ -1,4 +1,4 @@
-"""No motion that nobody commanded, for every vendor, through ROS (issue 9).
+"""No motion that nobody commanded, for every vendor, through ROS.
 
 Each test starts a vendor's simulator and node as processes (the benches of the vendor test
 modules) and judges by the simulator's true position, not by what the node reports:

@@ -1,6 +1,6 @@
 """Start-up input errors end every executable with one line naming the problem and exit code 2:
 a params file that is missing or not a params file, `drives: []`, a params file written for
-another node, a value the vendor refuses (issue 10 item 8). Run through the installed
+another node, a value the vendor refuses. Run through the installed
 executables, as `ros2 run` starts them; each must end before it opens any link."""
 
 import re
@@ -62,7 +62,7 @@ def test_an_empty_drives_list_is_refused(procs, tmp_path, pkg, exe):
 
 @pytest.mark.parametrize('vendor, other', list(zip(VENDORS, VENDORS[1:] + VENDORS[:1])))
 def test_a_params_file_for_another_node_is_named_as_such(procs, vendor, other):
-    """What the demo launch did before issue 10: rd4_node started with config/xplus_mt.yaml."""
+    """A launch that passes the wrong file: rd4_node started with config/xplus_mt.yaml."""
     exe = f'{vendor}_node'
     assert start_up_output(procs, 'stepper_drivers', exe, '--params-file',
                            str(CONFIG / f'{other}.yaml')) == [

@@ -1,4 +1,4 @@
-"""Trajectories end to end (issue 12): ~/joint_trajectory and ~/follow_joint_trajectory of the
+"""Trajectories end to end: ~/joint_trajectory and ~/follow_joint_trajectory of the
 vendor nodes against the simulators, as separate processes.
 
 Arrival is measured on the simulators' own axes (their true position topics, 20 Hz): the first
@@ -285,7 +285,7 @@ def test_vector_step_follows_in_interpolated_mode_within_2_percent(vector_ip):
         rig.ros.wait_msg(rig.true_topic(d), lambda m, s=rad * VECTOR_STEPS_PER_RAD:
                          abs(m.data - s) <= 2, 2.0, f'{d} at {rad} rad')
     # following error against the planned profile (the action's feedback, 10 Hz): under 2 %
-    # of the longest segment, 2.0 rad (issue 12's goal for the Vector Step)
+    # of the longest segment, 2.0 rad (the Vector Step's goal, docs/benchmarks.md)
     worst = max(abs(e) for f in g.feedback for e in f.error.positions)
     assert len(g.feedback) >= 10 and worst < 0.02 * 2.0, worst
     # the stream ended: the periodic SYNC is back (the drives' 0x1006 watchdog) and no alarm

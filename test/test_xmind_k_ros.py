@@ -86,7 +86,7 @@ def test_three_drives_move_home_with_line_timing_and_busy_silence(procs, ros, tm
     assert st.homing_state == 'ATTAINED' and st.position_steps == 0
     assert b.fresh_true_steps('axis1') == pytest.approx(0.0, abs=0.5)
     # axis3 homes without a switch (method 60: RA); axis2 in - direction; homing needs the
-    # drive enabled (issue 9: a disabled drive once homed and moved)
+    # drive enabled (a disabled drive must not home and move)
     r = b.call('axis3', 'home')
     assert not r.success and 'not enabled' in r.message, r.message
     b.enable('axis3')
@@ -177,7 +177,7 @@ def test_pty_cut_and_restored_reconnects_and_stays_stopped(bench):
 
 
 def test_power_cycle_behind_a_lost_link_raises_the_alarm(bench):
-    """Issue 10 item 2: a real power cycle silences the drive first (a lost link); after the
+    """A real power cycle silences the drive first (a lost link); after the
     reconnect the alarm must be there, in status and diagnostics, until the next homing."""
     def diag(drive, cond):
         return bench.ros.wait_msg('/diagnostics', lambda a: any(
