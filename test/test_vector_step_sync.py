@@ -22,13 +22,12 @@ import pathlib
 import signal
 import subprocess
 import sys
-import threading
 import time
 
-import can
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 import pytest
 from rosharness import CONFIG, DriveBench, Procs, Proc, RosClient, executable, wait_for
+from stepper_sim.harness import SyncListener
 import yaml
 
 PARAMS = yaml.safe_load((CONFIG / 'vector_step.yaml').read_text())
@@ -110,41 +109,19 @@ class SyncRig(DriveBench):
                 for m in self.statuses(d) if m.fault]
 
 
-class BusListener:
-    """A station on the bus: the broker's stamps of the SYNCs it relays."""
-
-    def __init__(self, port):
-        self.bus = can.Bus(interface='socketcand', host='127.0.0.1', port=port, channel='can0',
-                           tcp_tune=True)
-        self.stamps: list[float] = []
-        self.lock = threading.Lock()
-        self.notifier = can.Notifier(self.bus, [self._on], 0.1)
-
-    def _on(self, msg):
-        if msg.arbitration_id == 0x080:
-            with self.lock:
-                self.stamps.append(msg.timestamp)
+class BusListener(SyncListener):
+    """The SYNC listener (stepper_sim.harness) that can also stall a process at a SYNC."""
 
     def stop_after_next_sync(self, pid, hold_s):
         """SIGSTOP process `pid` as soon as the next SYNC is seen, SIGCONT hold_s later."""
-        with self.lock:
-            seen = len(self.stamps)
-        wait_for(lambda: len(self.stamps) > seen, 2.0, 'a SYNC', 0.001)
+        seen = self.count()
+        wait_for(lambda: self.count() > seen, 2.0, 'a SYNC', 0.001)
         os.kill(pid, signal.SIGSTOP)
         try:
             stopped = time.monotonic()
             wait_for(lambda: time.monotonic() - stopped >= hold_s, 1.0, f'{hold_s} s', 0.002)
         finally:
             os.kill(pid, signal.SIGCONT)
-
-    def max_gap(self):
-        with self.lock:
-            stamps = list(self.stamps)
-        return max(b - a for a, b in zip(stamps, stamps[1:]))
-
-    def close(self):
-        self.notifier.stop()
-        self.bus.shutdown()
 
 
 @contextlib.contextmanager

@@ -15,7 +15,6 @@ import os
 import signal
 import subprocess
 import sys
-import threading
 import time
 
 import can
@@ -23,7 +22,8 @@ import pytest
 from stepper_drivers.drive import LinkError
 from stepper_drivers.protocol import canopen_link, canopen_producers
 from stepper_drivers.protocol.canopen_link import CanBus
-from stepper_sim.harness import Proc, executable, fifo_allowed, wait_for
+from stepper_sim.harness import (Proc, SyncListener, executable, fifo_allowed, max_gap,
+                                 wait_for)
 
 PERIOD_S = 0.05                # the SYNC period of these buses
 SYNC_TIMEOUT_S = 0.5           # the drives' 0x1006 time (sync_timeout_s, the shipped default)
@@ -46,45 +46,10 @@ def broker(tmp_path):
     proc.kill()
 
 
-class Listener:
-    """Another station on the bus: the broker's stamps of the SYNCs it relays."""
-
-    def __init__(self, port):
-        self.bus = can.Bus(interface='socketcand', host='127.0.0.1', port=port, channel='can0',
-                           tcp_tune=True)
-        self.stamps: list[float] = []
-        self.lock = threading.Lock()
-        self.notifier = can.Notifier(self.bus, [self._on], 0.1)
-
-    def _on(self, msg):
-        if msg.arbitration_id == 0x080:
-            with self.lock:
-                self.stamps.append(msg.timestamp)
-
-    def count(self):
-        with self.lock:
-            return len(self.stamps)
-
-    def since(self, mark):
-        with self.lock:
-            return list(self.stamps[mark:])
-
-    def wait_syncs(self, count, mark=0):
-        wait_for(lambda: self.count() - mark >= count, 5.0, f'{count} SYNCs on the bus')
-
-    def close(self):
-        self.notifier.stop()
-        self.bus.shutdown()
-
-
-def max_gap(stamps):
-    return max(b - a for a, b in zip(stamps, stamps[1:]))
-
-
 @pytest.fixture
 def link(broker):
     """(the node's CanBus on the broker, a listener); both closed at the end."""
-    listener = Listener(broker)
+    listener = SyncListener(broker)
     bus = CanBus(interface='socketcand', port=broker, sync_period_s=PERIOD_S,
                  master_heartbeat_ms=100)
     bus.open()
@@ -251,7 +216,7 @@ def test_the_sync_stops_with_a_node_that_hangs_or_dies(broker):
     """The drives' watchdog must still stop them when the node cannot: a node process that
     hangs (SIGSTOP: nothing of it runs) loses its SYNC within the producer's lease, and has it
     again when it runs again; a killed node takes its producer along."""
-    listener = Listener(broker)
+    listener = SyncListener(broker)
     node = subprocess.Popen([sys.executable, '-c', NODE, str(broker)], stdout=subprocess.PIPE,
                             text=True)
     try:

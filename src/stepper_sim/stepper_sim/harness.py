@@ -146,3 +146,45 @@ def fifo_allowed(priority: int) -> bool:
     thread.start()
     thread.join()
     return allowed[0]
+
+
+class SyncListener:
+    """A station on a socketcand bus (the loopback broker on `port`): the broker's time stamps
+    of the SYNCs (COB-ID 0x080) it relays, so a test judges the SYNC on the wire itself."""
+
+    def __init__(self, port: int):
+        import can              # (only the CAN tests and benchmarks need python-can)
+        self.bus = can.Bus(interface='socketcand', host='127.0.0.1', port=port, channel='can0',
+                           tcp_tune=True)
+        self.stamps: list[float] = []
+        self.lock = threading.Lock()
+        self.notifier = can.Notifier(self.bus, [self._on], 0.1)
+
+    def _on(self, msg) -> None:
+        if msg.arbitration_id == 0x080:
+            with self.lock:
+                self.stamps.append(msg.timestamp)
+
+    def count(self) -> int:
+        with self.lock:
+            return len(self.stamps)
+
+    def since(self, mark: int) -> list[float]:
+        with self.lock:
+            return list(self.stamps[mark:])
+
+    def wait_syncs(self, count: int, mark: int = 0) -> None:
+        wait_for(lambda: self.count() - mark >= count, 5.0, f'{count} SYNCs on the bus')
+
+    def max_gap(self, mark: int = 0) -> float:
+        """The largest time between two SYNCs relayed since the mark-th one [s]."""
+        return max_gap(self.since(mark))
+
+    def close(self) -> None:
+        self.notifier.stop()
+        self.bus.shutdown()
+
+
+def max_gap(stamps: list[float]) -> float:
+    """The largest time between two consecutive stamps."""
+    return max(b - a for a, b in zip(stamps, stamps[1:]))
