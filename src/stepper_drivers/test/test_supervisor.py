@@ -133,9 +133,12 @@ class ScriptDrive(Drive):
         self._tx('write_register', address, value)
 
 
-def make(n_drives=2, **settings):
+def make(n_drives=2, kinds=None, **settings):
+    """A started owner of `n_drives` ScriptDrives (or of `kinds`: drive name -> ScriptDrive
+    class) on one Line, every drive connected and polled."""
     line = Line()
-    drives = {f'axis{i + 1}': ScriptDrive(line, f'axis{i + 1}') for i in range(n_drives)}
+    kinds = kinds or {f'axis{i + 1}': ScriptDrive for i in range(n_drives)}
+    drives = {name: kind(line, name) for name, kind in kinds.items()}
     cfg = {'publish_rate_hz': RATE_HZ, 'command_timeout_s': 0.3, 'reconnect_period_s': 0.05}
     cfg.update(settings)
     events = []
@@ -282,15 +285,12 @@ class SerialMoveDrive(ScriptDrive):
             self._tx('move_to write', i)
 
 
-def test_drives_streamed_on_a_slow_line_take_turns():
+def test_drives_streamed_on_a_slow_line_take_turns(bus):
     """Both drives streamed a position set point every 10 ms in one message (ros2_control's
     topic interface; axis1's submitted first) on a line where a move takes 5 transactions:
     each drive's newer set point replaces its waiting one, and the drives take turns, so
     neither waits for more than the other's one move (and the polls due meanwhile)."""
-    line = Line()
-    drives = {n: SerialMoveDrive(line, n) for n in ('axis1', 'axis2')}
-    sup = BusSupervisor(line, drives, {'publish_rate_hz': RATE_HZ, 'command_timeout_s': 0.3,
-                                       'reconnect_period_s': 0.05}, on_event=lambda *e: None)
+    sup, line, drives = bus(kinds={n: SerialMoveDrive for n in ('axis1', 'axis2')})
     stop = threading.Event()
 
     def stream():
@@ -301,20 +301,15 @@ def test_drives_streamed_on_a_slow_line_take_turns():
                 sup.submit(name, Command.position_stream(
                     lambda drive=drive, i=i: drive.move_to(i, None), f'p{i}'))
     publisher = threading.Thread(target=stream)
-    sup.start()
+    publisher.start()
     try:
-        wait_for(lambda: all(s.connected and s.polls for s in sup.slots.values()), 2.0,
-                 'connected and polled')
-        publisher.start()
         wait_for(lambda: line.calls(call='move_to'), 1.0, 'the stream under way')
         t0 = time.monotonic()
         time.sleep(1.0)
         t1 = time.monotonic()
     finally:
         stop.set()
-        if publisher.is_alive():
-            publisher.join()
-        sup.shutdown(0.5)
+        publisher.join()
     # the moves that started in the window, in their order on the wire: they alternate (each
     # drive always has a newer set point waiting when the other's move ends), so a set point
     # waits for the move in flight and the other drive's one move at most
@@ -625,49 +620,33 @@ class BurstDrive(ScriptDrive):
 
 
 @pytest.mark.parametrize('rate_hz', [5.0, 10.0])
-def test_steps_back_to_back_delay_no_poll_by_more_than_one_step(rate_hz):
+def test_steps_back_to_back_delay_no_poll_by_more_than_one_step(bus, rate_hz):
     """A long operation whose steps follow each other at once (no wait between them) leaves
     every other drive its poll rate: a due poll goes before the operation's next step, so no
     poll gap exceeds the period, the step in flight and one transaction."""
-    line = Line()
-    drives = {n: BurstDrive(line, n) for n in ('axis1', 'axis2', 'axis3')}
-    sup = BusSupervisor(line, drives, {'publish_rate_hz': rate_hz, 'command_timeout_s': 0.3,
-                                       'reconnect_period_s': 0.05}, on_event=lambda *e: None)
-    sup.start()
-    try:
-        wait_for(lambda: all(s.connected and s.polls for s in sup.slots.values()), 2.0,
-                 'connected and polled')
-        t0 = time.monotonic()
-        assert result(sup.submit('axis1', Command.maintenance(
-            lambda: drives['axis1'].burst(100), 'burst')), 5.0) == 'done'
-        t1 = time.monotonic()
-        bound = 1.0 / rate_hz + TX_S + TX_S + 0.04     # period, a step, a transaction, slack
-        for name in ('axis2', 'axis3'):
-            reads = [c[0] for c in line.calls(name, 'read_state') if t0 <= c[0] <= t1]
-            gap = max(b - a for a, b in zip([t0] + reads, reads + [t1]))
-            assert gap <= bound, f'{name} not polled for {gap:.3f} s (bound {bound:.3f} s)'
-    finally:
-        sup.shutdown(0.5)
+    sup, line, drives = bus(kinds=dict.fromkeys(('axis1', 'axis2', 'axis3'), BurstDrive),
+                            publish_rate_hz=rate_hz)
+    t0 = time.monotonic()
+    assert result(sup.submit('axis1', Command.maintenance(
+        lambda: drives['axis1'].burst(100), 'burst')), 5.0) == 'done'
+    t1 = time.monotonic()
+    bound = 1.0 / rate_hz + TX_S + TX_S + 0.04     # period, a step, a transaction, slack
+    for name in ('axis2', 'axis3'):
+        reads = [c[0] for c in line.calls(name, 'read_state') if t0 <= c[0] <= t1]
+        gap = max(b - a for a, b in zip([t0] + reads, reads + [t1]))
+        assert gap <= bound, f'{name} not polled for {gap:.3f} s (bound {bound:.3f} s)'
 
 
-def test_a_long_operation_goes_on_while_polls_overrun():
+def test_a_long_operation_goes_on_while_polls_overrun(bus):
     """Polls that do not fit the period (2 x 10 ms per 10 ms) do not stop a running operation:
     a step that waited a period for polls goes before them."""
-    line = Line()
-    drives = {n: BurstDrive(line, n) for n in ('axis1', 'axis2', 'axis3')}
-    sup = BusSupervisor(line, drives, {'publish_rate_hz': 100.0, 'command_timeout_s': 0.3,
-                                       'reconnect_period_s': 0.05}, on_event=lambda *e: None)
-    sup.start()
-    try:
-        wait_for(lambda: all(s.connected and s.polls for s in sup.slots.values()), 2.0,
-                 'connected and polled')
-        t0 = time.monotonic()
-        assert result(sup.submit('axis1', Command.maintenance(
-            lambda: drives['axis1'].burst(20), 'burst')), 5.0) == 'done'
-        # each step: at most a period of polls, a poll in flight, and itself
-        assert time.monotonic() - t0 <= 20 * (0.01 + 2 * TX_S) + 0.3
-    finally:
-        sup.shutdown(0.5)
+    sup, line, drives = bus(kinds=dict.fromkeys(('axis1', 'axis2', 'axis3'), BurstDrive),
+                            publish_rate_hz=100.0)
+    t0 = time.monotonic()
+    assert result(sup.submit('axis1', Command.maintenance(
+        lambda: drives['axis1'].burst(20), 'burst')), 5.0) == 'done'
+    # each step: at most a period of polls, a poll in flight, and itself
+    assert time.monotonic() - t0 <= 20 * (0.01 + 2 * TX_S) + 0.3
 
 
 def test_stop_of_another_drive_during_a_long_operation_goes_next(bus):
@@ -737,44 +716,35 @@ class SlowDisableDrive(ScriptDrive):
         return 'saved'
 
 
-def test_an_urgent_job_during_a_long_operation_of_its_drive_holds_nobody_else():
+def test_an_urgent_job_during_a_long_operation_of_its_drive_holds_nobody_else(bus):
     """A disable that comes while its drive saves runs between the save's steps, stepped like
     any job: the other drive keeps its poll rate (a gap of at most its period, the longest step
     and one transaction) and its velocity watchdog stops it on time. The drive's own calls
     keep their order: the save's steps stop for the disable's, and go on after them."""
-    line = Line()
-    drives = {'axis1': SlowDisableDrive(line, 'axis1'), 'axis2': ScriptDrive(line, 'axis2')}
-    sup = BusSupervisor(line, drives, {'publish_rate_hz': RATE_HZ, 'command_timeout_s': 0.3,
-                                       'reconnect_period_s': 0.05}, on_event=lambda *e: None)
-    sup.start()
-    try:
-        wait_for(lambda: all(s.connected and s.polls for s in sup.slots.values()), 2.0,
-                 'connected and polled')
-        save = sup.submit('axis1', Command.maintenance(drives['axis1'].save_params, 'save'))
-        wait_for(lambda: len(line.calls('axis1', 'save step')) >= 3, 1.0, 'save under way')
-        t0 = time.monotonic()
-        sup.arm_watchdog('axis2')          # falls due while the disable runs
-        deadline = sup.slots['axis2'].velocity_deadline
-        result(sup.submit('axis2', Command.velocity_stream(
-            lambda: drives['axis2'].set_velocity(5.0, None), 'v5', 5.0)))
-        disable = sup.submit('axis1', Command.disable(drives['axis1'].disable))
-        assert result(disable) is None
-        t1 = time.monotonic()
-        assert result(save, 5.0) == 'saved'
-        assert t1 - t0 >= 4 * SlowDisableDrive.DISABLE_WAIT_S
-        reads = [c[0] for c in line.calls('axis2', 'read_state') if t0 <= c[0] <= t1]
-        gap = max(b - a for a, b in zip([t0] + reads, reads + [t1]))
-        bound = 1.0 / RATE_HZ + TX_S + TX_S + 0.05     # period, a step, a transaction, slack
-        assert gap <= bound, f'axis2 not polled for {gap:.3f} s (bound {bound:.3f} s)'
-        stop_t = _stop_time(line, 'axis2', t0)
-        assert stop_t is not None and 0.0 <= stop_t - deadline <= TX_S + 0.05, \
-            (stop_t and stop_t - deadline)
-        calls = [c[2] for c in line.calls('axis1') if c[2] in ('save step', 'disable step')]
-        k = calls.index('disable step')
-        assert calls[k:k + 4] == ['disable step'] * 4 and calls.count('save step') == 30
-        assert [c[3][0] for c in line.calls('axis1', 'save step')] == list(range(30))
-    finally:
-        sup.shutdown(0.5)
+    sup, line, drives = bus(kinds={'axis1': SlowDisableDrive, 'axis2': ScriptDrive})
+    save = sup.submit('axis1', Command.maintenance(drives['axis1'].save_params, 'save'))
+    wait_for(lambda: len(line.calls('axis1', 'save step')) >= 3, 1.0, 'save under way')
+    t0 = time.monotonic()
+    sup.arm_watchdog('axis2')          # falls due while the disable runs
+    deadline = sup.slots['axis2'].velocity_deadline
+    result(sup.submit('axis2', Command.velocity_stream(
+        lambda: drives['axis2'].set_velocity(5.0, None), 'v5', 5.0)))
+    disable = sup.submit('axis1', Command.disable(drives['axis1'].disable))
+    assert result(disable) is None
+    t1 = time.monotonic()
+    assert result(save, 5.0) == 'saved'
+    assert t1 - t0 >= 4 * SlowDisableDrive.DISABLE_WAIT_S
+    reads = [c[0] for c in line.calls('axis2', 'read_state') if t0 <= c[0] <= t1]
+    gap = max(b - a for a, b in zip([t0] + reads, reads + [t1]))
+    bound = 1.0 / RATE_HZ + TX_S + TX_S + 0.05     # period, a step, a transaction, slack
+    assert gap <= bound, f'axis2 not polled for {gap:.3f} s (bound {bound:.3f} s)'
+    stop_t = _stop_time(line, 'axis2', t0)
+    assert stop_t is not None and 0.0 <= stop_t - deadline <= TX_S + 0.05, \
+        (stop_t and stop_t - deadline)
+    calls = [c[2] for c in line.calls('axis1') if c[2] in ('save step', 'disable step')]
+    k = calls.index('disable step')
+    assert calls[k:k + 4] == ['disable step'] * 4 and calls.count('save step') == 30
+    assert [c[3][0] for c in line.calls('axis1', 'save step')] == list(range(30))
 
 
 # -------------------------------------------------------------------------------- watchdog
