@@ -73,9 +73,9 @@ from typing import Any
 os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
 
 from bench_command_path import (Helper, machine, parse_ascii, parse_rtu, parse_tcp,
-                                reserve_domain, running)
+                                reserve_domain)
 from bench_trajectory import VENDORS as TRAJ_VENDORS
-from bench_trajectory import on_time, quintic, Recorder, transaction_s
+from bench_trajectory import enable_all, on_time, quintic, Recorder, transaction_s
 from stepper_drivers.cli.ros_client import RosClient
 from stepper_drivers.units import UnitConversion
 from stepper_sim.harness import CONFIG, executable, fifo_allowed, free_port, Proc, wait_for
@@ -357,18 +357,7 @@ def run_vendor(key: str, ros: RosClient, log_dir: pathlib.Path, args) -> dict:
                              qos_profile_sensor_data)
         js_reliable = Recorder(ros, JointState, f'/{ns}/joint_states', lambda m: None)
         subs.append(js_reliable)
-        for d in drives:
-            wait_for(running(node, lambda d=d: (status[d].last_before(time.monotonic())
-                                                or DriveStatus()).connected),
-                     60, f'{spec.title} {d} connected')
-            r = ros.call(SetBool, f'/{ns}/{node_name}/{d}/enable', SetBool.Request(data=True),
-                         30)
-            if not r.success:
-                raise RuntimeError(f'{d}: enable refused: {r.message}')
-        for d in drives:
-            wait_for(running(node, lambda d=d: (status[d].last_before(time.monotonic())
-                                                or DriveStatus()).enabled),
-                     10, f'{spec.title} {d} enabled')
+        enable_all(ros, node, status, f'/{ns}/{node_name}', drives, spec.title)
         wait_for(lambda: all(true[d].last_before(time.monotonic()) is not None
                              for d in drives) and js, 10, 'true positions and joint_states')
         names = [joints[d] for d in drives] + [FOREIGN_JOINT]

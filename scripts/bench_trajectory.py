@@ -361,6 +361,21 @@ def first_in_band(samples, t_from: float, t_to: float, target: float, band: floa
     return None, closest
 
 
+
+def enable_all(ros: RosClient, node: Proc, status: dict, node_path: str, drives, title: str
+               ) -> None:
+    """Wait until each drive's status says connected, enable it (its `enable` service), and
+    wait until each says enabled; the node's death ends every wait (`running`)."""
+    def last(d):
+        return status[d].last_before(time.monotonic()) or DriveStatus()
+    for d in drives:
+        wait_for(running(node, lambda d=d: last(d).connected), 60, f'{title} {d} connected')
+        r = ros.call(SetBool, f'{node_path}/{d}/enable', SetBool.Request(data=True), 30)
+        if not r.success:
+            raise RuntimeError(f'{d}: enable refused: {r.message}')
+    for d in drives:
+        wait_for(running(node, lambda d=d: last(d).enabled), 10, f'{title} {d} enabled')
+
 def on_time(samples: list[tuple[float, float]], period_s: float) -> list[tuple[float, float]]:
     """The samples that arrived one publishing period (0.3..2 x) after the one before: after a
     stall of this process or of DDS, samples come in a burst, stamped late (a 100 ms stall once
@@ -608,17 +623,7 @@ def bring_up(spec: Spec, ros: RosClient, log_dir: pathlib.Path, tag: str, sample
             true[d] = Recorder(ros, Float64, f'/{spec.key}_sim/{d}/true_position_steps',
                                lambda m: m.data)
             status[d] = Recorder(ros, DriveStatus, f'/{b.node_name}/{d}/status')
-        for d in DRIVES:
-            wait_for(running(node, lambda d=d: (status[d].last_before(time.monotonic())
-                                                or DriveStatus()).connected),
-                     60, f'{spec.title} {d} connected')
-            r = ros.call(SetBool, f'/{b.node_name}/{d}/enable', SetBool.Request(data=True), 30)
-            if not r.success:
-                raise RuntimeError(f'{d}: enable refused: {r.message}')
-        for d in DRIVES:
-            wait_for(running(node, lambda d=d: (status[d].last_before(time.monotonic())
-                                                or DriveStatus()).enabled),
-                     10, f'{spec.title} {d} enabled')
+        enable_all(ros, node, status, f'/{b.node_name}', DRIVES, spec.title)
         wait_for(lambda: all(true[d].last_before(time.monotonic()) is not None
                              for d in DRIVES), 10, 'true positions')
     except BaseException:
