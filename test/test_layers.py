@@ -104,7 +104,8 @@ def problems(module: str, imported: set[str]) -> list[str]:
                 {m for m in ours if not (m in CORE or m.startswith(('protocol', 'vendors')))})
         bad('vendors/ import no ROS (the node layer resolves what needs ROS)', ros)
         bad('the product does not import the simulators', sim)
-    elif module.split('.')[-1] in CORE and module.count('.') == 1:
+    elif (module.split('.')[-1] in CORE and module.count('.') == 1) \
+            or within(module, 'stepper_drivers.supervisor'):
         bad('the core uses only the core',
             {m for m in ours if m not in CORE})
         bad('the core imports no ROS', ros)

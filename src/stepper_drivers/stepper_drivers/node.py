@@ -459,7 +459,8 @@ class DriveNode(Node):
         return h.conv.to_steps_int(position)
 
     def _job_failed(self, h: DriveHandle, what: str, fut: concurrent.futures.Future) -> None:
-        """Owner thread, when a queued command ended: a failure goes to the status and
+        """When a queued command ended (the owner thread; the submitting one when it ended
+        before its callback was added, or was refused at once): a failure goes to the status and
         /diagnostics each time, to the log at the first of a run of one kind (as `refuse`: a
         stream of set points the drive cannot take is one error, not one per set point); one
         the drive took ends the run. Superseded and dropped ones are normal."""
@@ -476,7 +477,7 @@ class DriveNode(Node):
         if kind != h.job_error_logged:
             self.log.error(f'{h.name}: {msg}')
             h.job_error_logged = kind
-        h.slot.last_error = msg
+        h.sup.report_error(h.name, msg)
 
     def command_position(self, h: DriveHandle, position: float,
                          age_s: float | None = None, stream: bool = False) -> None:

@@ -8,9 +8,10 @@ so one SingleThreadedExecutor serves the node and a stop is never queued behind 
 service or action that changed a drive answers once the change is published (`published`).
 
 An answer is judged only by snapshots that followed its own writes: the job's future carries
-the drive's write count at its end (supervisor.py, snapshot provenance), and a snapshot counts
-for the answer only when its `after_write` is at least that (`_command`, `_since`). A snapshot
-whose read went out before the command (a poll under way while it ran) is no answer to it.
+the drive's write count at its end (supervisor/polling.py, snapshot provenance), and a snapshot
+counts for the answer only when its `after_write` is at least that (`_command`, `_since`). A
+snapshot whose read went out before the command (a poll under way while it ran) is no answer
+to it.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """PollGroup: one thread polls the drives of several buses (no rclpy).
 
 A node whose drives sit on several links of a `nonblocking_polls` bus (X-PLUS MT: every drive is
-its own Modbus TCP server) has a bus owner per link (supervisor.py), so that a host that stops
+its own Modbus TCP server) has a bus owner per link (supervisor/), so that a host that stops
 answering stalls only its own drives. Polled by their owners, eight links cost eight thread
 wake-ups and eight owner passes a poll period; the bare loop that reads the same registers from
 one thread costs less than two thirds of that (docs/benchmarks.md). This thread does the idle
@@ -28,8 +28,8 @@ Threads and what they own:
   gives every link back with its drives unpolled: the owners poll them themselves from then on,
   at once (a drive-side watchdog of a few poll periods does not notice).
 
-The owners wake for a poll only once it is late by GROUP_GRACE_S (supervisor.py); a link polled
-by its owner (a job ran at the grid point) is lent again at a later period.
+The owners wake for a poll only once it is late by GROUP_GRACE_S (supervisor/schedule.py); a
+link polled by its owner (a job ran at the grid point) is lent again at a later period.
 """
 
 from __future__ import annotations
@@ -43,6 +43,7 @@ from typing import Any, Callable
 
 from .drive import LinkError
 from .supervisor import BusSupervisor, Slot
+from .supervisor.priority import set_priority
 
 logger = logging.getLogger(__name__)
 
@@ -145,7 +146,9 @@ class PollGroup:
         return 1.0 / self.sups[0].settings['publish_rate_hz']
 
     def _run(self) -> None:
-        self.sups[0]._set_priority()       # the owners' priority: this thread polls for them
+        first = self.sups[0]               # the owners' priority: this thread polls for them
+        set_priority(int(first.settings.get('owner_thread_priority', 0)), first.on_event,
+                     first.name)
         try:
             while not self._stop.is_set():
                 if all(sup.stopping or not sup.alive for sup in self.sups):

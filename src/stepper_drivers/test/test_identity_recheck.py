@@ -37,8 +37,8 @@ AT = r'checked again at \d\d:\d\d:\d\d, in {:g} s; fault_reset checks at once'
 
 @pytest.fixture
 def fast_recheck(monkeypatch):
-    monkeypatch.setattr(supervisor, 'IDENTITY_RECHECK_S', 0.2)
-    monkeypatch.setattr(supervisor, 'IDENTITY_RECHECK_MAX_S', 0.5)
+    monkeypatch.setattr(supervisor.slot, 'IDENTITY_RECHECK_S', 0.2)
+    monkeypatch.setattr(supervisor.slot, 'IDENTITY_RECHECK_MAX_S', 0.5)
 
 
 def counted(drive):
@@ -108,7 +108,7 @@ def test_noise_is_retried_on_the_reconnect_back_off_and_never_makes_a_drive_not_
 
 
 def test_recheck_connects_at_once_and_says_what_it_found(monkeypatch):
-    monkeypatch.setattr(supervisor, 'IDENTITY_RECHECK_S', 60.0)
+    monkeypatch.setattr(supervisor.slot, 'IDENTITY_RECHECK_S', 60.0)
     sup, drive, slot, calls, _ = scripted(IdentityError('HW Version reads RD5'))
     try:
         wait_for(lambda: slot.not_driven, 2.0, 'not driven')

@@ -243,7 +243,7 @@ def test_a_command_handed_over_to_a_sleeping_owner_is_taken_before_submit_return
     until the sleeping owner has taken the job, so the owner does not wait for the GIL behind
     rclpy's bookkeeping after the callback. Bounded by HAND_OVER_MAX_S, made long here so a
     loaded machine cannot end the wait first."""
-    monkeypatch.setattr(supervisor, 'HAND_OVER_MAX_S', 5.0)
+    monkeypatch.setattr(supervisor.owner, 'HAND_OVER_MAX_S', 5.0)
     sup, line, d = bus(publish_rate_hz=0.5)          # the owner sleeps about 2 s between polls
     for i in range(5):
         wait_for(lambda: sup.idle, 3.0, 'the owner asleep')
@@ -257,7 +257,7 @@ def test_a_command_handed_over_to_a_sleeping_owner_is_taken_before_submit_return
 def test_a_busy_owner_is_not_waited_for(bus, monkeypatch):
     """An owner in a transaction is not waited for (on a serial line that is 20-30 ms of the
     executor thread): submit returns at once and the job waits in the queue."""
-    monkeypatch.setattr(supervisor, 'HAND_OVER_MAX_S', 5.0)
+    monkeypatch.setattr(supervisor.owner, 'HAND_OVER_MAX_S', 5.0)
     sup, line, d = bus()
     release = threading.Event()
     busy = sup.submit('axis2', Command(COMMAND, lambda: release.wait(5.0), 'a long transaction'))
@@ -1065,7 +1065,7 @@ def test_an_owner_that_fails_stops_its_drives_says_why_and_ends_once():
 def test_owner_thread_priority_puts_the_owner_alone_on_sched_fifo(bus, priority):
     """owner_thread_priority: the owner thread on SCHED_FIFO at that priority (where this process
     may; otherwise the warning of the refusal below), no other thread; 0: nothing changes."""
-    supervisor._priority_refusal_told = False         # (told once per process)
+    supervisor.priority._refusal_told = False         # (told once per process)
     sup, _, drives = bus(owner_thread_priority=priority)
     owner = sup._thread.native_id
     fifo = priority and fifo_allowed(priority)
@@ -1083,7 +1083,7 @@ def test_a_refused_owner_thread_priority_is_a_warning_and_the_bus_works(bus):
     the node's parameter allows 1..99) is one warning naming the parameter and why, and the
     owner runs on the normal scheduler. Told once per process: the owner of a second bus (a
     node's next drive host) is refused in silence."""
-    supervisor._priority_refusal_told = False
+    supervisor.priority._refusal_told = False
     sup, _, drives = bus(owner_thread_priority=100)
     assert os.sched_getscheduler(sup._thread.native_id) == os.SCHED_OTHER
     (warning,) = [e for e in sup.events if 'owner_thread_priority' in e[2]]
@@ -1184,3 +1184,25 @@ def test_a_snapshot_a_drive_vouches_for_after_a_command_carries_the_count_of_tha
         assert slot.state.after_write == fut.after_write == slot.write_seq
     finally:
         sup.shutdown(0.5)
+
+
+# --------------------------------------------------------------------- who writes a slot
+def test_the_write_check_catches_a_slot_written_by_the_wrong_thread(bus):
+    """The suite runs with the slots' writer check on (conftest.py): an owner field written
+    by another thread than the owner, or a request field written without the bus lock, fails
+    at the write, naming the field and the thread."""
+    sup, _, _ = bus()
+    slot = sup.slots['axis1']
+    with pytest.raises(supervisor.slot.WriterError, match=r'axis1\.next_poll_t written by '
+                       r'thread MainThread, not by the acting owner owner bus'):
+        slot.next_poll_t = 0.0
+    with pytest.raises(supervisor.slot.WriterError,
+                       match=r'axis1\.poll_requested written without the bus lock'):
+        slot.poll_requested = True
+    with pytest.raises(supervisor.slot.WriterError, match=r'axis1\.nxt_poll_t: not a field'):
+        slot.nxt_poll_t = 0.0
+    with sup._cv:
+        slot.poll_requested = True                # a request, under the lock: allowed
+    done = []
+    sup.after(0.0, lambda: done.append(setattr(slot, 'next_poll_t', slot.next_poll_t)))
+    wait_for(lambda: done, 1.0, 'the owner wrote its own field')
