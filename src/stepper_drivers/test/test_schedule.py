@@ -20,8 +20,8 @@ PERIOD_S = 0.1
 NOW = 10.0
 
 
-def job(polled=False, enqueued_t=0.0):
-    return types.SimpleNamespace(polled=polled, enqueued_t=enqueued_t)
+def job(polled=False, enqueued_t=0.0, motion=True):
+    return types.SimpleNamespace(polled=polled, enqueued_t=enqueued_t, motion=motion)
 
 
 def slot(name, **fields):
@@ -37,9 +37,9 @@ def slot(name, **fields):
     return s
 
 
-def running(steps_due=True, polled=False, **fields):
+def running(steps_due=True, polled=False, motion=True, **fields):
     """A drive whose step-wise job runs; its next step is due (or not)."""
-    return dict(active=job(polled), active_steps=iter(()),
+    return dict(active=job(polled, motion=motion), active_steps=iter(()),
                 wake_t=NOW - 0.001 if steps_due else NOW + 1.0, **fields)
 
 
@@ -50,7 +50,8 @@ def late_step():
 
 DUE = dict(next_poll_t=NOW - 0.01)                 # its poll is due
 OVERDUE = dict(next_poll_t=NOW - PERIOD_S - 0.01)  # a period late
-QUEUED = dict(queue=collections.deque([job()]))
+QUEUED = dict(queue=collections.deque([job()]))                    # a move waits
+QUEUED_SAVE = dict(queue=collections.deque([job(motion=False)]))   # a save waits
 
 
 def run(slots, *, urgent=False, quiet=None, events=0, jobs_since_poll=0,
@@ -114,7 +115,31 @@ TABLE = [
     ('the longest due of the overdue', [slot('a', next_poll_t=NOW - 0.15),
                                         slot('b', next_poll_t=NOW - 0.3), slot('c', **QUEUED)],
      dict(jobs_since_poll=MAX_JOBS_BEFORE_OVERDUE_POLL), Rule.OVERDUE_POLL, 'b'),
-    # 6 a due step: the due polls first, unless the step waited a period for them
+    # 6 the step of a poll under way, at its own wake time, before jobs that do not move
+    ("a poll step before a save's step and a queued save",
+     [slot('a', **running(motion=False)), slot('b', **QUEUED_SAVE),
+      slot('c', poll_steps=iter(()), poll_wake_t=NOW)], {}, Rule.POLL_STEP, 'c'),
+    ("a move's step before a poll step",
+     [slot('a', **running()), slot('c', poll_steps=iter(()), poll_wake_t=NOW)], {},
+     Rule.STEP, 'a'),
+    ("a move's step also when a save's comes first in order",
+     [slot('a', **running(motion=False)), slot('b', **running()),
+      slot('c', poll_steps=iter(()), poll_wake_t=NOW)], {}, Rule.STEP, 'a'),
+    ('a queued move before a poll step',
+     [slot('b', **QUEUED), slot('c', poll_steps=iter(()), poll_wake_t=NOW)], {},
+     Rule.START_JOB, 'b'),
+    ('the earliest poll step', [slot('a', poll_steps=iter(()), poll_wake_t=NOW - 0.01),
+                                slot('b', poll_steps=iter(()), poll_wake_t=NOW - 0.02)], {},
+     Rule.POLL_STEP, 'b'),
+    ('a poll step due', [slot('a', poll_steps=iter(()), poll_wake_t=NOW)], {},
+     Rule.POLL_STEP, 'a'),
+    ('a poll step not yet (the drive is not due again meanwhile)',
+     [slot('a', poll_steps=iter(()), poll_wake_t=NOW + 0.06, **OVERDUE)], {}, Rule.SLEEP,
+     None),
+    ('a poll step before a reconnect', [slot('a', connected=False),
+                                        slot('b', poll_steps=iter(()), poll_wake_t=NOW)], {},
+     Rule.POLL_STEP, 'b'),
+    # 7 a due step: the due polls first, unless the step waited a period for them
     ('polls before a step', [slot('a', **DUE), slot('b', **running())], {},
      Rule.POLLS_BEFORE_STEP, 'a'),
     ('a step that waited a period for the polls goes', [slot('a', **DUE),
@@ -128,7 +153,7 @@ TABLE = [
      Rule.STEP, 'a'),
     ("a polled job's drive is", [slot('a', **DUE, **running(polled=True))], {},
      Rule.POLLS_BEFORE_STEP, 'a'),
-    # 7 a waiting job: the drive whose turn it is
+    # 8 a waiting job: the drive whose turn it is, unless a job went and polls are due
     ('a queued job', [slot('a'), slot('b', **QUEUED)], {}, Rule.START_JOB, 'b'),
     ('turns: the drive that went longest ago',
      [slot('a', turn=7, **QUEUED), slot('b', turn=3, **QUEUED)], {}, Rule.START_JOB, 'b'),
@@ -142,17 +167,9 @@ TABLE = [
      Rule.START_JOB, 'b'),
     ('a job of a disconnected drive still starts (it fails at once)',
      [slot('a', connected=False, next_connect_t=NOW + 1, **QUEUED)], {}, Rule.START_JOB, 'a'),
-    ('a job before a due poll step', [slot('a', poll_steps=iter(()), poll_wake_t=NOW),
-                                      slot('b', **QUEUED)], {}, Rule.START_JOB, 'b'),
-    # 8 a step-wise poll at its own wake time
-    ('a poll step due', [slot('a', poll_steps=iter(()), poll_wake_t=NOW)], {},
-     Rule.POLL_STEP, 'a'),
-    ('a poll step not yet (the drive is not due again meanwhile)',
-     [slot('a', poll_steps=iter(()), poll_wake_t=NOW + 0.06, **OVERDUE)], {}, Rule.SLEEP,
-     None),
-    ('a poll step before a reconnect', [slot('a', connected=False),
-                                        slot('b', poll_steps=iter(()), poll_wake_t=NOW)], {},
-     Rule.POLL_STEP, 'b'),
+    ('a job before the due polls, once a job went: the polls',
+     [slot('a', **DUE), slot('b', **QUEUED)], dict(jobs_since_poll=1), Rule.POLLS_BEFORE_JOB,
+     'a'),
     # 9 a reconnect before the due polls
     ('a reconnect', [slot('a', **DUE), slot('b', connected=False, next_connect_t=NOW)], {},
      Rule.RECONNECT, 'b'),

@@ -39,8 +39,9 @@ Order (the rules, one by one: schedule.py):
   reach the wire after at most the one transaction already in flight (running.py).
 - No job holds the owner: a due poll goes before a running operation's next step, so while the
   polls fit the period no drive's poll gap exceeds its period, the longest single step of a
-  job on the bus and one transaction, whatever runs beside it; every watchdog is checked on
-  time.
+  job on the bus and one transaction beside a save, an enable or a register access; a move's
+  steps go before the later steps of a poll (a slow line has no room for both). Every
+  watchdog is checked on time.
 
 Snapshot provenance: every snapshot carries the count of writes to its drive in force when its
 read began (running.py counts them, polling.py stamps them); an answer is judged only by a

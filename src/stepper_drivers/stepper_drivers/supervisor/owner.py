@@ -345,8 +345,8 @@ class BusSupervisor(RunningPart, PollingPart, LinkPart):
         elif rule is Rule.START_JOB:
             self._jobs_since_poll += 1
             self._start_job(d.slot)
-        elif rule is Rule.POLLS_BEFORE_STEP:
-            self._poll_due(d.dues, now)        # (ends at the step: it is due)
+        elif rule is Rule.POLLS_BEFORE_STEP or rule is Rule.POLLS_BEFORE_JOB:
+            self._poll_due(d.dues, now)        # (ends at the step or job: it is due)
         elif rule is Rule.OVERDUE_POLL or rule is Rule.POLL_STEP:
             self._poll_step(d.slot, now)
         elif rule is Rule.TIMERS:

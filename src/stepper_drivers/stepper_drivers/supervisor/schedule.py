@@ -12,16 +12,26 @@ changes nothing; the owner carries the decision out (owner.py). The rules, highe
     WATCHDOG      a velocity watchdog deadline passed (a stop)        } the bus' order
  5. OVERDUE_POLL  the longest-due poll is a period late and MAX_JOBS_BEFORE_OVERDUE_POLL jobs
                   or steps went first since the last poll
- 6. POLLS_BEFORE_STEP  a step of a running job is due, and so are polls, and the step has
+ 6. POLL_STEP     the next step of a poll under way is due (at its own wake time), and no step
+                  or start of a job that moves is: the earliest (a poll is a few transactions;
+                  it goes before a save or a register access, as a due poll does)
+ 7. POLLS_BEFORE_STEP  a step of a running job is due, and so are polls, and the step has
     STEP          not yet waited a period for them: the polls first; else the step (no job
                   holds the owner; an overrun of polls does not stop an operation)
- 7. START_JOB     a drive has a waiting job and none running: the one whose turn it is
-                  (`next_turn`)
- 8. POLL_STEP     the next step of a step-wise poll is due (at its own wake time)
+ 8. POLLS_BEFORE_JOB  a drive has a waiting job and none running, polls are due, and a job
+    START_JOB     or a step went since the last poll: the polls first; else the job of the
+                  drive whose turn it is (`next_turn`): a command goes before the due polls,
+                  but a run of commands does not hold them
+    POLL_STEP     a poll step due behind a move's steps: a move's strings are on a deadline,
+                  and on a slow line polls and moves do not both fit (X-MIND K: a trajectory
+                  finished 1.2 s late when poll steps went first)
  9. RECONNECT     a disconnected drive's next connection attempt is due
 10. POLLS         polls are due: the longest-due first (a quiet cycle when all are due)
 11. DISCONNECTED_CYCLE  no drive connected: their DISCONNECTED status, at the poll rate
 12. SLEEP         until `next_wake`
+
+So while the polls fit the period, no drive's poll gap exceeds its period, the longest single
+step of a job on the bus and one transaction, whatever runs beside it.
 
 A poll is due when the drive is connected, no poll of it is under way, no job of it runs (but
 one that asked to be polled between its steps: a stream of set points), and its grid time came
@@ -53,14 +63,15 @@ class Rule(enum.Enum):
     NOT_DRIVEN = 4
     WATCHDOG = 5
     OVERDUE_POLL = 6
-    POLLS_BEFORE_STEP = 7
-    STEP = 8
-    START_JOB = 9
-    POLL_STEP = 10
-    RECONNECT = 11
-    POLLS = 12
-    DISCONNECTED_CYCLE = 13
-    SLEEP = 14
+    POLL_STEP = 7
+    POLLS_BEFORE_STEP = 8
+    STEP = 9
+    POLLS_BEFORE_JOB = 10
+    START_JOB = 11
+    RECONNECT = 12
+    POLLS = 13
+    DISCONNECTED_CYCLE = 14
+    SLEEP = 15
 
 
 class Vouched(NamedTuple):
@@ -83,7 +94,7 @@ class QuietPass(NamedTuple):
 class Decision(NamedTuple):
     rule: Rule
     slot: Slot | None = None
-    dues: list[Slot] | None = None       # POLLS, POLLS_BEFORE_STEP: the drives due
+    dues: list[Slot] | None = None       # POLLS, POLLS_BEFORE_*: the drives due
 
 
 def poll_due(slot: Slot, now: float) -> bool:
@@ -103,7 +114,7 @@ def decide(slots: Sequence[Slot], now: float, period_s: float, *, events: int, u
     timers = next_timer_t <= now
     check = due = step = poll_step = reconnect = None
     dues: list[Slot] = []
-    queued = connected = False
+    queued = connected = moving = False
     for slot in slots:
         if slot.poll_waiters and not timers:
             timers = any(w[0] <= now for w in slot.poll_waiters)
@@ -123,9 +134,12 @@ def decide(slots: Sequence[Slot], now: float, period_s: float, *, events: int, u
         if slot.active is None:
             if slot.queue:
                 queued = True
-        elif step is None and slot.active_steps is not None and now >= slot.wake_t:
-            step = slot
-        if poll_step is None and slot.poll_steps is not None and now >= slot.poll_wake_t:
+        elif slot.active_steps is not None and now >= slot.wake_t:
+            if step is None:
+                step = slot
+            moving = moving or slot.active.motion
+        if slot.poll_steps is not None and now >= slot.poll_wake_t \
+                and (poll_step is None or slot.poll_wake_t < poll_step.poll_wake_t):
             poll_step = slot
     if timers:
         return Decision(Rule.TIMERS)
@@ -134,14 +148,17 @@ def decide(slots: Sequence[Slot], now: float, period_s: float, *, events: int, u
     if due is not None and now >= due.next_poll_t + period_s \
             and jobs_since_poll >= MAX_JOBS_BEFORE_OVERDUE_POLL:
         return Decision(Rule.OVERDUE_POLL, due)
+    turn = next_turn(slots) if queued else None
+    if poll_step is not None and not moving and (turn is None or not turn.queue[0].motion):
+        return Decision(Rule.POLL_STEP, poll_step)
     if step is not None:
         if due is not None and now < step.wake_t + period_s:
             return Decision(Rule.POLLS_BEFORE_STEP, due, dues)
         return Decision(Rule.STEP, step)
-    if queued:
-        turn = next_turn(slots)
-        if turn is not None:
-            return Decision(Rule.START_JOB, turn)
+    if turn is not None:
+        if due is not None and jobs_since_poll:
+            return Decision(Rule.POLLS_BEFORE_JOB, due, dues)
+        return Decision(Rule.START_JOB, turn)
     if poll_step is not None:
         return Decision(Rule.POLL_STEP, poll_step)
     if reconnect is not None:          # before due polls: they may be due all the time
