@@ -57,7 +57,13 @@ Per trajectory:
   and RMS, rad and % of the polyline's length;
 - timing error: per joint, the true position against the trajectory's own positions
   interpolated linearly at the same time (time 0: the goal sent), max;
-- the node's merge of the points into segments (its log line for the goal).
+- the node's merge of the points into segments (its log line for the goal);
+- stall share per joint: the share of the middle 80 % of the move (trajectory time 0.1 .. 0.9 x
+  duration) in which the joint runs below a quarter of its planned speed (the points'
+  velocities, linear between them); its speed from the true positions, the difference over
+  STALL_WINDOW_S around each sample; timing error also in % of the joint's travel; finish
+  against MoveIt's built-in limit, 1.1 x duration + 0.5 s, beside its example configurations'.
+  Goals (X-PLUS MT, Vector Step, RD4): stall <= 5 %, timing error <= 2 % of the travel.
 
 Two nodes (`--two-node`): an X-PLUS MT node and an RD4 node (line timing on), each sent its two
 joints' part of one four-joint trajectory (the quintic line, 2.0 and 1.0 rad per node, 3.2 s)
@@ -73,6 +79,7 @@ Run: source scripts/env.sh && python scripts/bench_trajectory.py [--vendor rd4 .
      [--trajectories N] [--sample-rate HZ] [--band F] [--vector-sync-period [S ...]]
      [--dense] [--two-node] [--dt S ...] [--two-node-dt S ...]
      [--json out.json]            (everything but the dense part: about 100 s)
+     [--from-json out.json]       (only the dense tables again, from a --json file of a run)
      --dense and/or --two-node run only those parts (all four buses and both: a few minutes).
 """
 
@@ -129,7 +136,13 @@ SHAPES = (
 # MoveIt-like dense trajectories (--dense, --two-node)
 MOVEIT_SCALING = 1.2           # allowed_execution_duration_scaling (its example configurations)
 MOVEIT_MARGIN_S = 0.5          # allowed_goal_duration_margin
+MOVEIT_BUILTIN_SCALING = 1.1   # MoveIt's own default of allowed_execution_duration_scaling
+STALL_FRACTION = 0.25          # a joint below this share of its planned speed stalls
+STALL_WINDOW_S = 0.04          # speed: the difference of the true positions over this window
+STALL_MIDDLE = (0.1, 0.9)      # of the duration: the middle 80 % of the move
 DENSE_DURATION_S = 3.0
+# --node-param: extra parameters for the nodes of the dense runs
+NODE_PARAMS: list[str] = []
 DENSE_KINDS = ('line', 'arc')
 LINE_RAD = (2.0, 1.0)          # per joint: 2.24 rad in joint space
 ARC_RADIUS_RAD = 1.0           # a quarter circle: 1.57 rad
@@ -772,6 +785,44 @@ def moveit_limit_s(duration_s: float) -> float:
     return MOVEIT_SCALING * duration_s + MOVEIT_MARGIN_S
 
 
+def builtin_limit_s(duration_s: float) -> float:
+    return MOVEIT_BUILTIN_SCALING * duration_s + MOVEIT_MARGIN_S
+
+
+def dense_points(kind: str, start: list[float], dt: float):
+    """The points of one dense trajectory from where it started (as run_dense makes them)."""
+    signs = away(start)
+    return (line_points(start, [s * x for s, x in zip(signs, LINE_RAD)], DENSE_DURATION_S, dt)
+            if kind == 'line' else arc_points(start, signs, ARC_RADIUS_RAD, DENSE_DURATION_S,
+                                              dt))
+
+
+def stall_figures(samples: dict[str, list[tuple[float, float]]], points) -> dict:
+    """Per drive: stall share (the module's docstring) and timing error in % of its travel.
+    samples: drive -> [(time since the goal was sent, rad)]."""
+    out: dict[str, dict] = {'stall_share': {}, 'travel_rad': {}}
+    duration = points[-1][0]
+    lo, hi = (f * duration for f in STALL_MIDDLE)
+    for i, d in enumerate(DRIVES):
+        planned = [(p[0], abs(p[2][i])) for p in points]
+        xs = samples[d]
+        below = total = 0
+        for t, _x in xs:
+            if not lo <= t <= hi:
+                continue
+            before = [(ts, x) for ts, x in xs if t - STALL_WINDOW_S / 2 - 1e-9 <= ts <= t]
+            after = [(ts, x) for ts, x in xs if t <= ts <= t + STALL_WINDOW_S / 2 + 1e-9]
+            (t0, x0), (t1, x1) = before[0], after[-1]
+            if t1 - t0 < STALL_WINDOW_S / 2:
+                continue
+            speed = abs(x1 - x0) / (t1 - t0)
+            total += 1
+            below += speed < STALL_FRACTION * interp(planned, t)
+        out['stall_share'][d] = below / total if total else float('nan')
+        out['travel_rad'][d] = abs(points[-1][1][i] - points[0][1][i])
+    return out
+
+
 def merge_line(lines: list[str]) -> dict:
     """The node's log line on merging points into segments for one goal, parsed; its warnings
     about the goal (refusal, outcome)."""
@@ -800,6 +851,7 @@ def run_dense(spec: Spec, ros: RosClient, log_dir: pathlib.Path, sample_hz: floa
     """The MoveIt-like dense trajectories on one bus (see the module's docstring)."""
     tag = f'{spec.key}_dense' + ('' if sync_period_s is None else f'_sync{sync_period_s:g}')
     node_extra = [] if sync_period_s is None else ['-p', f'can.sync_period_s:={sync_period_s}']
+    node_extra += [x for a in NODE_PARAMS for x in ('-p', a)]
     results: dict[str, Any] = {'part': 'dense', 'vendor': spec.key, 'tag': tag,
                                'sync_period_s': sync_period_s, 'trajectories': []}
     bus = bring_up(spec, ros, log_dir, tag, sample_hz, node_extra)
@@ -873,6 +925,7 @@ def _dense_one(bus: Bus, ros: RosClient, points, sample_hz: float) -> dict:
         out['samples_lag_s'] = max(samples_lag(
             samples[d], points[-1][1][i], 1.5 / bus.convs[d].steps_per_unit, t1)
             for i, d in enumerate(DRIVES))
+    out.update(stall_figures({d: [(t - t0, x) for t, x in samples[d]] for d in DRIVES}, points))
     out.update(merge_line(bus.log_since(mark)))
     out.update(points_n=len(points), error_code=result.error_code,
                error_string=result.error_string, finish_s=t1 - t0,
@@ -911,19 +964,28 @@ def dense_row(title: str, t: dict) -> str:
     if t.get('samples_lag_s', 0) > 0:
         result += f' (samples late by {t["samples_lag_s"]:.2f} s: figures **not valid**)'
     timing = ' / '.join(f'{1000 * t["timing_max_rad"][d]:.1f}' for d in DRIVES)
+    if 'travel_rad' in t:
+        timing += ' (' + ' / '.join(f'{100 * t["timing_max_rad"][d] / t["travel_rad"][d]:.1f}'
+                                    for d in DRIVES) + ' % of travel)'
+    stall = ' / '.join(f'{100 * t["stall_share"][d]:.0f} %' for d in DRIVES) \
+        if 'stall_share' in t else '-'
+    builtin = builtin_limit_s(t['duration_s'])
+    verdict += f' {t["limit_s"]:.1f}; {"within" if finish <= builtin else "**over**"}'
+    verdict += f' {builtin:.1f}'
     segs = ('no merge' if t.get('segments') is None else
             f'{t["points"]} points as {t["segments"]} segments (>= {t["min_segment_s"]:.3g} s); '
             f'plan within {t.get("merge_far", "?")} of the points')
-    return (f'| {title} | {what} ({t["points_n"]} points) | {result} | {finish:.2f} s ({verdict} '
-            f'{t["limit_s"]:.1f}) | {1000 * t["path_max_rad"]:.1f} / '
+    return (f'| {title} | {what} ({t["points_n"]} points) | {result} | {finish:.2f} s ({verdict}'
+            f') | {stall} | {1000 * t["path_max_rad"]:.1f} / '
             f'{1000 * t["path_rms_rad"]:.1f} mrad ({100 * t["path_max_frac"]:.2f} / '
             f'{100 * t["path_rms_frac"]:.2f} %) | '
             f'{timing} | {segs} |')
 
 
-DENSE_HEADER = ('| bus | trajectory | result | finish (MoveIt limit) | path error max / RMS '
-                "(% of length) | timing error max joint1 / joint2 (mrad) | node's segments |\n"
-                '|---|---|---|---|---|---|---|')
+DENSE_HEADER = ('| bus | trajectory | result | finish (MoveIt limit x 1.2; x 1.1) | stall joint1 '
+                '/ joint2 | path error max / RMS (% of length) | timing error max joint1 / '
+                "joint2 (mrad) | node's segments |\n"
+                '|---|---|---|---|---|---|---|---|')
 
 
 def report_dense(spec: Spec, r: dict, log_dir: pathlib.Path) -> None:
@@ -937,6 +999,10 @@ def report_dense(spec: Spec, r: dict, log_dir: pathlib.Path) -> None:
     print(DENSE_HEADER)
     for t in r['trajectories']:
         print(dense_row(spec.title, t))
+    _dense_notes(r, log_dir)
+
+
+def _dense_notes(r: dict, log_dir: pathlib.Path | None) -> None:
     for t in r['trajectories']:
         extra = []
         if t.get('accepted_s') is not None:
@@ -958,7 +1024,7 @@ def report_dense(spec: Spec, r: dict, log_dir: pathlib.Path) -> None:
             extra.append(f'node: {w[-200:]}')
         if extra:
             print(f'   {t["kind"]} {t["dt_s"]:g} s: ' + '; '.join(extra))
-    if 'error' in r:
+    if 'error' in r and log_dir is not None:
         print(f'   FAILED: {r["error"]} (node log: {log_dir / (r["tag"] + "_node.log")})')
 
 
@@ -1188,7 +1254,7 @@ def summary(runs: list[dict]) -> None:
             title = spec.title + ('' if r.get('sync_period_s') is None
                                   else f', SYNC {r["sync_period_s"]:g} s')
             if not r.get('trajectories'):
-                print(f'| {title} | | **failed**: {r.get("error")} | | | | |')
+                print(f'| {title} | | **failed**: {r.get("error")} | | | | | |')
             for t in r.get('trajectories', []):
                 print(dense_row(title, t))
     for r in runs:
@@ -1201,6 +1267,18 @@ def summary(runs: list[dict]) -> None:
                 print(f'| | **failed**: {r.get("error")} | | | | | | | |')
             for t in r.get('trajectories', []):
                 print(two_node_row(t))
+
+
+def from_json(path: pathlib.Path) -> int:
+    """The dense tables of a --json file, the figures its samples give computed again."""
+    runs = json.loads(path.read_text())['runs']
+    for r in runs:
+        for t in r.get('trajectories', []):
+            if r.get('part') == 'dense' and 'samples' in t and 'start_rad' in t:
+                points = dense_points(t['kind'], t['start_rad'], t['dt_s'])
+                t.update(stall_figures(t['samples'], points))
+    summary(runs)
+    return 0
 
 
 def main() -> int:
@@ -1225,8 +1303,17 @@ def main() -> int:
                     help='--dense: line, arc (default both)')
     ap.add_argument('--two-node-dt', type=float, nargs='+', default=[0.8, 0.1],
                     help='--two-node: a point every S seconds (default 0.8 0.1)')
+    ap.add_argument('--node-param', action='append', default=[], metavar='NAME:=VALUE',
+                    help='a parameter for the nodes of the dense runs (repeat for more), e.g. '
+                    'constraints.xmind_joint1.path_bound:=0.1')
     ap.add_argument('--json', type=pathlib.Path, help='write every figure to this file')
+    ap.add_argument('--from-json', type=pathlib.Path,
+                    help="no run: the dense tables again from a --json file's samples (stall "
+                         'share and timing in % of travel for a file written before they were)')
     args = ap.parse_args()
+    NODE_PARAMS.extend(args.node_param)
+    if args.from_json:
+        return from_json(args.from_json)
     sparse = not (args.dense or args.two_node)
     syncs = args.vector_sync_period
     if syncs is None:

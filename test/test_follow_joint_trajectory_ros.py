@@ -112,10 +112,19 @@ class XplusShipped(XplusBench):
     pass
 
 
+def unbounded(*joints):
+    """Node arguments that leave the plans of `joints` unbounded (constraints.<joint>.path_bound
+    0): the serial lines' tests here send short fast trajectories (1 rad in 1 s) whose merged
+    segments pass farther than the default bound from the points; the bound has tests of its
+    own (test_trajectory_continuous_ros.py, src/stepper_drivers/test/test_trajectory.py)."""
+    return tuple(x for j in joints for x in ('-p', f'constraints.{j}.path_bound:=0.0'))
+
+
 class Rd4Shipped(Rd4Bench):
     """Two RD4 on one 19200-baud line with line timing, polled at config/rd4.yaml's 10 Hz."""
 
-    node_extra_args = ('-p', 'timeout_s:=0.3')   # the simulator shares 2 busy cores
+    # the simulator shares 2 busy cores
+    node_extra_args = ('-p', 'timeout_s:=0.3', *unbounded('rd4_joint1', 'rd4_joint2'))
 
     def sim_args(self):
         return super().sim_args() + ['-p', 'line_timing:=true']
@@ -124,7 +133,8 @@ class Rd4Shipped(Rd4Bench):
 class XmindShipped(XmindBench):
     """Three X-MIND K on one 9600-baud line with line timing, config/xmind_k.yaml's 5 Hz."""
 
-    node_extra_args = ('-p', 'timeout_s:=0.25')
+    node_extra_args = ('-p', 'timeout_s:=0.25',
+                       *unbounded('xmind_joint1', 'xmind_joint2', 'xmind_joint3'))
 
     def __init__(self, procs, ros, tmp_path):
         super().__init__(procs, ros, tmp_path, line_timing=True)
@@ -403,7 +413,8 @@ def test_a_goals_tolerances_resolve_over_the_constraints_parameters_as_jtcs():
     spu = conv.steps_per_unit
     params = {'constraints.goal_time': 0.5, 'constraints.stopped_velocity_tolerance': 0.02,
               'constraints.a.trajectory': 0.1, 'constraints.a.goal': 0.0,
-              'constraints.b.trajectory': 0.0, 'constraints.b.goal': 0.01}
+              'constraints.b.trajectory': 0.0, 'constraints.b.goal': 0.01,
+              'constraints.a.path_bound': 0.05, 'constraints.b.path_bound': 0.05}
     handle = SimpleNamespace(name='axis', conv=conv, cfg=SimpleNamespace(params={'unit': 'rad'}),
                              state=SimpleNamespace(velocity_valid=True))
     trajectories = TrajectoryInterface.__new__(TrajectoryInterface)     # no node: its parts
@@ -416,6 +427,8 @@ def test_a_goals_tolerances_resolve_over_the_constraints_parameters_as_jtcs():
     assert tol.goal_velocity_steps_s == {'a': pytest.approx(0.02 * spu),
                                          'b': pytest.approx(0.02 * spu)}
     assert tol.goal_time_s == 0.5
+    # the plan's bound: the path tolerance where there is one, else constraints.*.path_bound
+    assert tol.path_bound_steps == {'a': pytest.approx(0.1 * spu), 'b': pytest.approx(0.05 * spu)}
     goal = FollowJointTrajectory.Goal(
         path_tolerance=[JointTolerance(name='a', position=-1.0),
                         JointTolerance(name='b', position=0.3)],
@@ -424,6 +437,7 @@ def test_a_goals_tolerances_resolve_over_the_constraints_parameters_as_jtcs():
         goal_time_tolerance=duration(1.5))
     tol = trajectories._tolerances(goal, ['a', 'b'])
     assert tol.path_steps == {'b': pytest.approx(0.3 * spu)}
+    assert tol.path_bound_steps == {'a': pytest.approx(0.05 * spu), 'b': pytest.approx(0.3 * spu)}
     assert tol.goal_steps == {'a': pytest.approx(0.2 * spu), 'b': pytest.approx(0.01 * spu)}
     assert tol.goal_velocity_steps_s == {'a': None, 'b': pytest.approx(0.5 * spu)}
     assert tol.goal_time_s == 1.5

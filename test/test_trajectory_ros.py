@@ -128,12 +128,13 @@ def test_xplus_a_goal_running_when_the_node_is_stopped_gets_its_result(xplus):
 def test_xplus_impossible_segment_is_rejected_before_anything_moves(xplus):
     xplus.enable('axis1')
     before = xplus.fresh_true_steps('axis1')
-    # 40 rad in 0.1 s needs 16000 rad/s^2; max_acceleration is 2000 (config/xplus_mt.yaml)
+    # 40 rad in 0.1 s: 400 rad/s on average; max_velocity is 40 (config/xplus_mt.yaml; the
+    # X-PLUS MT's joints follow velocity-continuously, bounded by their max_velocity)
     since = len(log_lines(xplus))
     assert rejected(xplus, FollowJointTrajectory.Goal(trajectory=trajectory(
         ['xplus_joint1'], [(0.1, [40.0])])))
     logged(xplus, since, 'goal rejected (INVALID_GOAL): xplus_joint1: segment to point 0',
-           'max_acceleration')
+           'max_velocity')
     assert not xplus.status('axis1').moving
     assert xplus.fresh_true_steps('axis1') == before
 

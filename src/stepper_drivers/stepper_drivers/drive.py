@@ -398,6 +398,9 @@ class Vendor:
     make_drive: Callable[[Bus, str, Mapping[str, Any]], Drive]
     # defaults for the common per-drive parameters that differ by vendor (steps_per_rev ...)
     drive_defaults: Mapping[str, Any] = dataclasses.field(default_factory=dict)
+    # defaults for the joint parameters constraints.<joint>.* that differ by vendor, for a joint
+    # in rad (X-MIND K: path_bound, what its line can carry of a MoveIt plan)
+    joint_defaults: Mapping[str, Any] = dataclasses.field(default_factory=dict)
     # Per-drive parameters that choose the drive's link (X-PLUS MT: 'host', 'port'): a drive
     # that sets one ('' and 0 mean "as the bus-level parameter of the same name") gets a bus of
     # its own, with its own owner thread (and polls lent to one poll group where the bus has

@@ -20,6 +20,15 @@ and one that turns there would cut its point. Where the drive takes a new target
 (Drive.retargets_on_the_way) and the axis goes on in the same direction, it passes the point on
 its way to the next one: that move goes at once, so a late axis is not held at every point
 (each hold would add the wait to see it arrive and the move's own transactions).
+
+Velocity-continuous joints (Drive.retargets_on_the_way, not streamed: RD4, X-PLUS MT, Vector
+Step in profile position): their moves are planned by trajectory.plan(continuous=...) to take
+effect before the segment starts (half their speed change before the point) with the next point
+as their target, so that the joint passes its points at speed. Their jobs are submitted that much
+earlier, wait in the owner (giving the bus back) until their lead before the planned instant, and
+solve their cruise speed again on the drive's profile from where the move before (as it really
+went out) has the drive then (trajectory.solve_cruise): a move that goes out late passes its
+point in time all the same, within the joint's max_velocity.
 """
 
 from __future__ import annotations
@@ -35,8 +44,8 @@ from typing import Callable
 from .drive import Drive, InterpolatingDrive, Motion, is_steps
 from .commands import Command
 from .supervisor import BusSupervisor
-from .trajectory import (JointLimits, Segment, Trajectory, TrajectoryError, along, along_velocity,
-                         plan, retimed)
+from .trajectory import (EDGE_MARGIN, AxisMove, JointLimits, Segment, Trajectory,
+                         TrajectoryError, cruise, plan, planned_at, retimed)
 
 logger = logging.getLogger(__name__)
 
@@ -53,6 +62,12 @@ GOAL_WAIT_MAX_S = 10.0        # without a goal_time_tolerance: the longest wait 
 # A segment lasts at least this many times what its bus needs to send the moves of its axes:
 # the polls and the other drives' commands share the line meanwhile.
 SEGMENT_MARGIN = 3.0
+# ... and on a bus whose axes all follow velocity-continuously this many: a move that goes out a
+# little late only shifts its speed change, the axis does not stop for it.
+CONTINUOUS_SEGMENT_MARGIN = 2.0
+# A continuous move's job is submitted this many times its bus's moves of one segment (what
+# they cost) before the move's planned instant, so it is in the owner's queue by then.
+CONTINUOUS_SUBMIT_AHEAD = 1.5
 # An interpolated axis is where its set point was this many SYNC periods ago: the point written
 # at a tick waits in the buffer behind the one before, is taken at the next tick's SYNC and
 # reached one period later.
@@ -93,6 +108,12 @@ class Axis:
     limits: JointLimits
     lead_s: float = 0.0     # learned: a move's own transactions before the drive runs
     move_time_s: float = 0.0   # the drive's own estimate of lead_s (Drive.move_time_s)
+
+    @property
+    def continuous(self) -> bool:
+        """Followed velocity-continuously: its drive takes a new target on the way and it gets
+        point-to-point moves (trajectory.plan's `continuous`)."""
+        return bool(self.drive.retargets_on_the_way) and not self.interpolated
 
     @property
     def interpolated(self) -> bool:
@@ -151,13 +172,17 @@ class Tolerances:
     drive's own moving flag); None: not checked; > 0: |velocity| within it, a drive that
     reports standstill counting as 0 (a velocity reading can be older than its moving flag:
     the RD4 refreshes it once a second) and a moving one that reports no velocity as outside.
-    goal_time_s: 0 no limit (until every joint stands still, at most GOAL_WAIT_MAX_S)."""
+    goal_time_s: 0 no limit (until every joint stands still, at most GOAL_WAIT_MAX_S).
+    path_bound_steps: how far the plan (merged segments, continuous profiles) may pass from the
+    trajectory's points, per joint (the path tolerance where there is one, else the node's
+    default); absent or 0: not bounded."""
 
     path_steps: dict[str, float] = dataclasses.field(default_factory=dict)
     goal_steps: dict[str, float | None] = dataclasses.field(default_factory=dict)
     goal_time_s: float = 0.0
     path_velocity_steps_s: dict[str, float] = dataclasses.field(default_factory=dict)
     goal_velocity_steps_s: dict[str, float | None] = dataclasses.field(default_factory=dict)
+    path_bound_steps: dict[str, float] = dataclasses.field(default_factory=dict)
 
 
 class Run:
@@ -185,6 +210,9 @@ class Run:
         # joint: when its last move of this run had gone out (written by the owner threads'
         # jobs, read by the run thread: one dict item)
         self._moved_t: dict[str, float] = {}
+        # joint: its last continuous move as it went out (when it ran, entry position and
+        # velocity, target, cruise), by the owner threads' jobs, one after the other per joint
+        self._went: dict[str, tuple[float, AxisMove]] = {}
         self.final_steps = dict(start_steps)
         for point in traj.points:
             self.final_steps.update(zip(traj.joints, point.positions_steps))
@@ -201,19 +229,7 @@ class Run:
 
     def desired(self, t: float) -> tuple[dict[str, float], dict[str, float]]:
         """The planned position and velocity of each joint at monotonic time t."""
-        clock_s = t - self.start_t
-        pos = dict(self.start_steps)
-        vel = {j: 0.0 for j in self.start_steps}
-        for seg in self.segments:
-            if clock_s <= seg.start_s:
-                break
-            tau = min(clock_s, seg.end_s) - seg.start_s
-            for m in seg.moves:
-                profile = (pos[m.joint], m.target_steps, m.velocity_steps_s,
-                           m.acceleration_steps_s2, tau - m.start_delay_s)
-                vel[m.joint] = along_velocity(*profile) if clock_s < seg.end_s else 0.0
-                pos[m.joint] = along(*profile)
-        return pos, vel
+        return planned_at(self.segments, self.start_steps, t - self.start_t)
 
     def merge_summary(self) -> str | None:
         """One line on the points merged into longer segments; None when none were."""
@@ -229,7 +245,7 @@ class Run:
         return (f'{len(self.segments) + merged} points followed as {len(self.segments)} '
                 f'segments of at least {self.min_segment_s:.3g} s (what the bus needs to send '
                 f"the moves of its axes) or as long as the joints' accelerations need; the "
-                f'plan passes the merged points within {far}')
+                f"plan passes the trajectory's points within {far}")
 
     def cancel(self, why: str, hand_over: bool = False) -> None:
         """The client canceled: the run ends 'canceled' and its joints stop now, their stops
@@ -278,7 +294,7 @@ class Run:
             seg_t = self.start_t + seg.start_s
             if self._replaced_at is not None and seg_t >= self._replaced_at:
                 return _aborted(INVALID_GOAL, REPLACED)
-            problem = self._wait_until(seg_t)
+            problem = self._wait_until(seg_t + self._ahead_s(seg))
             if problem is not None:
                 return problem
             if self._replaced():
@@ -298,9 +314,9 @@ class Run:
             while waiting:
                 for move in list(waiting):
                     axis = self.follower.axes[move.joint]
+                    to = move.target_steps if move.via_steps is None else move.via_steps
                     if clock() < end_t and move.joint in before and self._still_on_the_way(
-                            axis, seg_t, previous[move.joint], before[move.joint],
-                            move.target_steps):
+                            axis, seg_t, previous[move.joint], before[move.joint], to):
                         continue
                     with self.follower.submit_lock:
                         if self._cancel.is_set():
@@ -311,7 +327,7 @@ class Run:
                             self._move_job(axis, move, previous[move.joint], seg_t, end_t),
                             f'trajectory segment to {move.target_steps:g} steps')))
                     before[move.joint] = previous[move.joint]
-                    previous[move.joint] = move.target_steps
+                    previous[move.joint] = to
                     waiting.remove(move)
                 if waiting:
                     problem = self._check()
@@ -381,8 +397,74 @@ class Run:
         axis.sup.poll_soon(axis.drive_name)
         return True
 
+    def _ahead_s(self, seg: Segment) -> float:
+        """When the segment's moves are submitted, against its start: its continuous moves'
+        earliest planned instant (<= 0), less CONTINUOUS_SUBMIT_AHEAD times what their moves
+        cost on the bus; 0 for a segment of rest-to-rest moves only."""
+        cont = [m for m in seg.moves if m.via_steps is not None]
+        if not cont:
+            return 0.0
+        cost = sum(self.follower.axes[m.joint].move_cost_s() for m in cont)
+        return min(m.start_delay_s for m in cont) - CONTINUOUS_SUBMIT_AHEAD * cost
+
+    def _continuous_job(self, axis: Axis, move, seg_t: float, end_t: float) -> Callable:
+        """A continuous move's job (the module's docstring): it waits until its lead before the
+        move's planned instant, then sends the speed that passes the segment's point at its
+        end from where the drive is then on the profile of the move before."""
+        clock = self.follower.clock
+        lim = axis.limits
+
+        def job():
+            effect_t = seg_t + move.start_delay_s
+            early = effect_t - axis.lead_s - clock()
+            if early > 0:
+                yield early                          # the bus is the other drives' meanwhile
+            t0 = clock()
+            runs_t = max(t0 + axis.lead_s, effect_t)
+            went = self._went.get(axis.joint)
+            if went is None:                         # the run's first: where the plan has it
+                x, u = move.entry_steps, move.entry_velocity_steps_s
+            else:
+                x, u = went[1].state(runs_t - went[0])
+                # closed on the drive's position: as far off the move before's profile as its
+                # last snapshot since that move (a drive that lags keeps no lag to its point)
+                position, at = axis.sample()
+                if went[0] <= at and t0 - at <= LEAD_MAX_S:
+                    x += position - went[1].state(at - went[0])[0]
+            found = None
+            if (move.via_steps - x) * (move.via_steps - move.target_steps) <= 0:
+                found = cruise(x, u, move.via_steps, move.target_steps, end_t - runs_t,
+                               move.acceleration_steps_s2, lim)
+            if found is None:
+                # past its point already (the plan's speed), or it passes it late (the fastest)
+                past = (move.via_steps - x) * (move.via_steps - move.target_steps) > 0
+                top = EDGE_MARGIN * lim.max_acceleration_steps_s2
+                found = (move.velocity_steps_s, move.acceleration_steps_s2,
+                         move.deceleration_steps_s2) if past else \
+                    (lim.max_velocity_steps_s, top, top)
+            v, a, dec = found
+            if move.velocity_steps_s <= lim.start_stop_steps_s < v:
+                # start-stop as planned, a little late, rather than ramps that make it later
+                v, a, dec = (move.velocity_steps_s, move.acceleration_steps_s2,
+                             move.deceleration_steps_s2)
+            # (start-stop: the drive ignores its ramp registers)
+            result = axis.drive.move_to(int(round(move.target_steps)), Motion(v, a, dec))
+            if is_steps(result):
+                result = yield from result
+            self._went[axis.joint] = (runs_t, dataclasses.replace(
+                move, velocity_steps_s=v, acceleration_steps_s2=a, deceleration_steps_s2=dec,
+                entry_steps=x, entry_velocity_steps_s=u))
+            self._moved_t[axis.joint] = clock()
+            sent = axis.drive.motion_sent_t
+            lead = (sent if sent is not None and sent >= t0 else clock()) - t0
+            axis.lead_s += LEAD_SMOOTHING * (min(lead, LEAD_MAX_S) - axis.lead_s)
+            return result
+        return job
+
     def _move_job(self, axis: Axis, move, from_steps: float, seg_t: float, end_t: float
                   ) -> Callable:
+        if move.via_steps is not None:
+            return self._continuous_job(axis, move, seg_t, end_t)
         clock = self.follower.clock
 
         def job():
@@ -565,17 +647,23 @@ class Follower:
             # trajectory for now starts STREAM_PREPARE_S later, on every axis alike
             start_t = now + STREAM_PREPARE_S
         take_over = max(start_t, now)
+        start_velocity: dict[str, float] = {}
         if running:
-            start_steps = old.desired_steps(take_over)
+            start_steps, start_velocity = old.desired(take_over)
             start_steps = {j: start_steps.get(j, self.axes[j].position_steps())
                            for j in traj.joints}
         else:
             start_steps = {j: self.axes[j].position_steps() for j in traj.joints}
         min_segment_s = self.min_segment_s(traj.joints)
+        bound = {j: tol.path_bound_steps.get(j) or tol.path_steps.get(j, 0.0)
+                 for j in traj.joints}
         segments = plan(traj, start_steps, {j: self.axes[j].limits for j in traj.joints},
                         from_s=max(0.0, now - start_t), min_segment_s=min_segment_s,
-                        path_tolerance_steps=tol.path_steps,
-                        move_times_s=self.move_times_s(traj.joints))
+                        path_tolerance_steps=bound,
+                        move_times_s=self.move_times_s(traj.joints),
+                        continuous={j for j in traj.joints if self.axes[j].continuous},
+                        start_velocity_steps_s={j: start_velocity.get(j, 0.0)
+                                                for j in traj.joints})
         return start_t, take_over, start_steps, segments, min_segment_s
 
     def move_times_s(self, joints) -> dict[str, tuple[object, float]]:
@@ -587,13 +675,18 @@ class Follower:
     def min_segment_s(self, joints) -> float:
         """The least duration of a segment: what the busiest bus needs to send one move to
         each of its axes (a move's measured time, or the drive's estimate before the first),
-        times SEGMENT_MARGIN. Streamed (interpolated) axes take no moves."""
+        times SEGMENT_MARGIN (CONTINUOUS_SEGMENT_MARGIN where every axis of the bus follows
+        velocity-continuously). Streamed (interpolated) axes take no moves."""
         per_bus: dict[int, float] = {}
+        stepwise: set[int] = set()
         for joint in joints:
             axis = self.axes[joint]
             if not axis.interpolated:
                 per_bus[id(axis.sup)] = per_bus.get(id(axis.sup), 0.0) + axis.move_cost_s()
-        return SEGMENT_MARGIN * max(per_bus.values(), default=0.0)
+                if not axis.continuous:
+                    stepwise.add(id(axis.sup))
+        return max((cost * (SEGMENT_MARGIN if bus in stepwise else CONTINUOUS_SEGMENT_MARGIN)
+                    for bus, cost in per_bus.items()), default=0.0)
 
     def _stop_later(self, joints: list[str], t: float) -> None:
         def stop():

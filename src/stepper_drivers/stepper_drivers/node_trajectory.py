@@ -105,7 +105,7 @@ class TrajectoryInterface:
             raise GoalError(INVALID_JOINTS, f'joint_names {joints} name a joint twice')
         if not joints:
             raise GoalError(INVALID_JOINTS, f'joint_names is empty (this node drives {known})')
-        times, positions = [], []
+        times, positions, velocities, accelerations = [], [], [], []
         for k, point in enumerate(msg.points):
             if len(point.positions) != len(joints):
                 raise GoalError(INVALID_GOAL, f'point {k}: {len(point.positions)} positions for '
@@ -113,7 +113,13 @@ class TrajectoryInterface:
             times.append(point.time_from_start.sec + point.time_from_start.nanosec * 1e-9)
             positions.append([self._handle(j).conv.to_steps(p)
                               for j, p in zip(joints, point.positions)])
-        return build(joints, times, positions, known)
+            # rates: steps per unit times the value
+            for rows, values in ((velocities, point.velocities),
+                                 (accelerations, point.accelerations)):
+                rows.append([self._handle(j).conv.steps_per_unit * x
+                             for j, x in zip(joints, values)] if len(values) == len(joints)
+                            else list(values))
+        return build(joints, times, positions, known, velocities, accelerations)
 
     def _start_t(self, stamp) -> float | None:
         """The monotonic time of a header stamp (None: zero stamp, start now)."""
@@ -192,7 +198,8 @@ class TrajectoryInterface:
             return
         try:
             traj, start_t = self._prepare(msg)
-            run = self._start(traj, start_t, Tolerances())
+            run = self._start(traj, start_t, Tolerances(path_bound_steps=self._bounds(
+                traj.joints)))
         except TrajectoryError as e:
             self.node.log.warning(f'joint_trajectory refused: {e}')
             return
@@ -205,6 +212,19 @@ class TrajectoryInterface:
         else:
             self.node.log.warning(f'{what}: {outcome.status}: {outcome.text}')
 
+    def _bounds(self, joints) -> dict[str, float]:
+        """The plan's bound of a trajectory on the topic (no tolerances): per joint
+        constraints.<joint>.trajectory where > 0, else constraints.<joint>.path_bound [steps]."""
+        out = {}
+        for joint in joints:
+            steps = abs(self._handle(joint).conv.steps_per_unit)
+            for name in ('trajectory', 'path_bound'):
+                value = self.node.get_parameter(f'constraints.{joint}.{name}').value
+                if value > 0:
+                    out[joint] = value * steps
+                    break
+        return out
+
     # --------------------------------------------------------------------------------- action
     def _tolerances(self, goal, joints) -> Tolerances:
         """The tolerances of a goal for `joints` in drive units, resolved as
@@ -216,12 +236,13 @@ class TrajectoryInterface:
         param = self.node.get_parameter
         stopped = param('constraints.stopped_velocity_tolerance').value
         out: dict[str, dict[str, float | None]] = {'path': {}, 'path_v': {}, 'goal': {},
-                                                   'goal_v': {}}
+                                                   'goal_v': {}, 'bound': {}}
         for joint in joints:
             steps = abs(self._handle(joint).conv.steps_per_unit)
             for key, value in (('path', param(f'constraints.{joint}.trajectory').value),
                                ('goal', param(f'constraints.{joint}.goal').value),
-                               ('goal_v', stopped)):
+                               ('goal_v', stopped),
+                               ('bound', param(f'constraints.{joint}.path_bound').value)):
                 out[key][joint] = value * steps if value > 0 else None
         for where, items, pos_key, vel_key in (
                 ('path_tolerance', goal.path_tolerance, 'path', 'path_v'),
@@ -265,7 +286,10 @@ class TrajectoryInterface:
                             'none)')
         if goal_time_s == 0:
             goal_time_s = param('constraints.goal_time').value
+        # the plan's bound: the path tolerance where there is one, else constraints.*.path_bound
+        bound = {j: out['path'].get(j) or out['bound'][j] for j in joints}
         return Tolerances(
+            path_bound_steps={j: v for j, v in bound.items() if v is not None},
             path_steps={j: v for j, v in out['path'].items() if v is not None},
             goal_steps=out['goal'], goal_time_s=max(goal_time_s, 0.0),
             path_velocity_steps_s={j: v for j, v in out['path_v'].items() if v is not None},

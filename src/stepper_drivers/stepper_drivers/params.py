@@ -244,7 +244,16 @@ JOINT_PARAMS = (
     P('goal', 0.0, 'follow_joint_trajectory goal tolerance: at the end of a goal the joint '
       "within this of the last point; 0 = not checked; default one step of the joint's drive. "
       "A goal's goal_tolerance position replaces it [rad or m]", 0.0, INF, read_only=False),
+    P('path_bound', 0.05, 'follow_joint_trajectory and joint_trajectory: the farthest the '
+      "node's plan may pass from any point of a trajectory (points merged into longer segments "
+      'where the bus needs them, velocity-continuous segments) where neither the goal '
+      "(path_tolerance position) nor constraints.<joint>.trajectory gives one; a trajectory "
+      'the bus cannot carry within it is rejected before anything moves. 0 = not bounded; '
+      'default 0.05 rad (X-MIND K 0.4 rad: docs/moveit.md), 0.005 m for unit m [rad or m]',
+      0.0, INF, read_only=False),
 )
+# path_bound's default for a joint in m (the rad default, 0.05, would be 5 cm)
+PATH_BOUND_M = 0.005
 
 # Per-drive parameters every node has, declared as drives.<name>.<param>.
 DRIVE_PARAMS = (
@@ -483,7 +492,7 @@ def declare_all(node: Node, vendor: Vendor, args: Sequence[str] = (),
         values[name] = {
             p.name: declare(node, prefix + p.name, p, vendor.drive_defaults.get(p.name), given)
             for p in (*DRIVE_PARAMS, *drive_specs)}
-    declare_joint_params(node, values, given)
+    declare_joint_params(node, values, given, vendor.joint_defaults)
     _refuse_unknown(node, given, drive_names)
     rules = functools.partial(validate, vendor_validate=vendor_validate)
     for problem in rules(current_values(node)):
@@ -496,9 +505,11 @@ def declare_all(node: Node, vendor: Vendor, args: Sequence[str] = (),
 
 
 def declare_joint_params(node: Node, drives: Mapping[str, Mapping[str, Any]],
-                         given: Mapping[str, Any]) -> None:
+                         given: Mapping[str, Any], rad_defaults: Mapping[str, Any] = {}
+                         ) -> None:
     """constraints.<joint>.* (JOINT_PARAMS) for the joint of each drive in `drives` (drive
-    name: its declared values), once per joint name (validate refuses a name used twice)."""
+    name: its declared values), once per joint name (validate refuses a name used twice);
+    `rad_defaults`: the vendor's own defaults for a joint in rad (Vendor.joint_defaults)."""
     for name, v in drives.items():
         joint = v['joint_name'] or name
         try:
@@ -509,7 +520,10 @@ def declare_joint_params(node: Node, drives: Mapping[str, Mapping[str, Any]],
         for p in JOINT_PARAMS:
             full = f'constraints.{joint}.{p.name}'
             if not node.has_parameter(full):
-                declare(node, full, p, step if p.name == 'goal' else None, given)
+                default = step if p.name == 'goal' else \
+                    PATH_BOUND_M if p.name == 'path_bound' and v['unit'] == 'm' else \
+                    rad_defaults.get(p.name)
+                declare(node, full, p, default, given)
 
 
 def _refuse_unknown(node: Node, given: Mapping[str, Any], drive_names: Iterable[str]) -> None:

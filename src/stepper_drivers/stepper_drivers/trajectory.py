@@ -22,13 +22,35 @@ the joints' max_acceleration. The merged plan is checked against every point it 
 joint's path tolerance the trajectory is refused before anything moves. An axis whose segment
 is slower than its drive's least speed (`min_velocity_steps_s`) runs at that speed and arrives
 early: it is off the path by less than that speed times the segment's duration.
+
+Velocity-continuous following (`plan(continuous=...)`: the joints whose drives take a new target
+while they move, Drive.retargets_on_the_way: the RD4's "Position override function", the
+X-PLUS MT's and the Vector Step's change set immediately in profile position): a joint does not
+stop at its points. Each segment's move goes to the drive before the one before it would start to
+slow down: its target is the next point where the joint goes on the same way (the drive then
+never brakes for the point it passes), its speed the one that passes the segment's point at the
+segment's end, found on the drive's own profile (`motion_state`: from the speed it has, ramps of
+one acceleration, a cruise, a brake at the target). It takes effect half its speed change before
+the segment starts, so that the change is centred on the point between the two segments (the
+joint's speed then steps from one segment's average to the next one's around each point: its
+position passes the points on time). The ramps: PLAN_FRACTIONS[0] of its max_acceleration, or
+RAMP_SHAPE times the plan's largest acceleration of the joint (the points' accelerations, or their
+positions' second differences) where that is steeper; a drive that runs start-stop at a speed
+(X-PLUS MT) jumps. A joint whose planned velocity is zero at a point, or that turns or holds
+there, brakes to rest on it, as the rest-to-rest segments do.
+
+The path is bounded: the plan (merged segments, continuous profiles) is evaluated at every point
+of the trajectory and may pass no farther from any than `path_bound_steps` (per joint: the goal's
+path tolerance, else the node's default); a trajectory that cannot be carried within it is
+refused before anything moves, naming the joint, the point, the bound and the least segment the
+bus needs.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Sequence
+from typing import Collection, Sequence
 
 # A trapezoid needs a * T^2 >= 4 * d (the triangle: accelerate half the time, brake the other
 # half). A segment within this fraction of that bound is refused too: the drives quantize the
@@ -37,6 +59,13 @@ EDGE_MARGIN = 0.98
 # The plan's ramps use this much of each joint's max_acceleration when the segment allows, so an
 # axis whose move goes out late (behind others on one serial line) can still catch up.
 PLAN_FRACTIONS = (0.7, EDGE_MARGIN)
+# Velocity-continuous joints: ramps at PLAN_FRACTIONS[0] of the joint's max_acceleration, or at
+# this many times the plan's largest acceleration of the joint where that is steeper (at most
+# EDGE_MARGIN of it). One value per joint and trajectory, for speeding up and slowing down
+# alike: the X-PLUS MT loads Profile Acceleration (1046) only when a move starts from rest and
+# uses it both ways (§13 "Multi-Set-Point Mode", "Registers 1046-1047"), the RD4 then writes
+# its ramps once, and a stop of the drive brakes as fast as a rest-to-rest move's would.
+RAMP_SHAPE = 1.5
 
 
 class TrajectoryError(ValueError):
@@ -65,6 +94,9 @@ class JointLimits:
 class Point:
     time_s: float                    # from the trajectory's start
     positions_steps: tuple[float, ...]
+    # the planned velocities [steps/s] and accelerations [steps/s^2] where the message has them
+    velocities_steps_s: tuple[float, ...] = ()
+    accelerations_steps_s2: tuple[float, ...] = ()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -84,6 +116,23 @@ class AxisMove:
     velocity_steps_s: float
     acceleration_steps_s2: float
     start_delay_s: float = 0.0
+    # A velocity-continuous move (None: rest to rest): the point it passes at the segment's end
+    # (target_steps is then the next point where the joint goes on the same way), and the
+    # planned position and velocity (signed) of the joint when it takes effect, start_delay_s
+    # (< 0: before the segment starts) into the segment.
+    via_steps: float | None = None
+    entry_steps: float = 0.0
+    entry_velocity_steps_s: float = 0.0
+    start_stop_steps_s: float = 0.0      # its drive's (JointLimits): no ramps at or below
+    deceleration_steps_s2: float = 0.0   # a continuous move's; 0: acceleration_steps_s2
+
+    def state(self, tau_s: float) -> tuple[float, float]:
+        """Planned (position, velocity) of a continuous move tau_s after it took effect."""
+        v, ss = self.velocity_steps_s, self.start_stop_steps_s
+        return motion_state(self.entry_steps, self.entry_velocity_steps_s, self.target_steps,
+                            v, ramps(self.acceleration_steps_s2, v, ss), tau_s,
+                            ramps(self.deceleration_steps_s2 or self.acceleration_steps_s2, v,
+                                  ss))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -101,10 +150,14 @@ class Segment:
 
 
 def build(joints: Sequence[str], times_s: Sequence[float],
-          positions_steps: Sequence[Sequence[float]], known: Sequence[str]) -> Trajectory:
+          positions_steps: Sequence[Sequence[float]], known: Sequence[str],
+          velocities_steps_s: Sequence[Sequence[float]] | None = None,
+          accelerations_steps_s2: Sequence[Sequence[float]] | None = None) -> Trajectory:
     """A Trajectory from message fields already converted to steps; TrajectoryError for joints
     that are not this node's, repeated joints, times that do not increase, a point whose
-    position count does not match the joints, or a value that is not a number."""
+    position count does not match the joints, or a value that is not a number. Velocities and
+    accelerations (per point, as the message has them: empty or one per joint) shape the
+    velocity-continuous segments; a point without them has ()."""
     unknown = [j for j in joints if j not in known]
     if unknown:
         raise TrajectoryError(f'joints {unknown} are not driven by this node (its joints: '
@@ -122,7 +175,16 @@ def build(joints: Sequence[str], times_s: Sequence[float],
         bad = [j for j, p in zip(joints, pos) if not math.isfinite(p)]
         if bad:
             raise TrajectoryError(f'point {k}: position of {bad} is not a number')
-        points.append(Point(float(t), tuple(float(p) for p in pos)))
+        extra = []
+        for what, rows in (('velocities', velocities_steps_s),
+                           ('accelerations', accelerations_steps_s2)):
+            row = tuple(float(x) for x in rows[k]) if rows is not None and k < len(rows) else ()
+            if row and len(row) != len(joints):
+                raise TrajectoryError(f'point {k}: {len(row)} {what} for {len(joints)} joints')
+            if not all(math.isfinite(x) for x in row):
+                raise TrajectoryError(f'point {k}: {what} of {list(joints)} are not numbers')
+            extra.append(row)
+        points.append(Point(float(t), tuple(float(p) for p in pos), *extra))
         last_t = t
     return Trajectory(tuple(joints), tuple(points))
 
@@ -240,7 +302,9 @@ def retimed(distance_steps: float, left_s: float, planned: tuple[float, float],
 def plan(traj: Trajectory, start_steps: dict[str, float], limits: dict[str, JointLimits],
          from_s: float = 0.0, min_segment_s: float = 0.0,
          path_tolerance_steps: dict[str, float] | None = None,
-         move_times_s: dict[str, tuple[object, float]] | None = None) -> list[Segment]:
+         move_times_s: dict[str, tuple[object, float]] | None = None,
+         continuous: Collection[str] = (),
+         start_velocity_steps_s: dict[str, float] | None = None) -> list[Segment]:
     """The synchronized segments of `traj` from trajectory time `from_s` (0: its start; later
     when it starts in the past), each axis from `start_steps` (where the drives are now);
     TrajectoryError naming the joint, the point and the limit when any segment cannot be met:
@@ -249,14 +313,19 @@ def plan(traj: Trajectory, start_steps: dict[str, float], limits: dict[str, Join
     Points are merged into one segment while it is shorter than `min_segment_s` (the bus's time
     to send a segment's moves) or needs more than a joint's max_acceleration; the last point is
     always a segment's end, and no segment is left shorter than `min_segment_s` at the end of
-    the trajectory. The plan of a merged segment is checked at each point it skips against
-    `path_tolerance_steps` (per joint; 0 or absent: not bounded).
+    the trajectory. The plan is checked at each point of the trajectory against
+    `path_tolerance_steps` (per joint, the path bound; 0 or absent: not bounded).
 
     `move_times_s` (joint: (its bus, what a move costs there)): the moves of a segment go out
     at its start one after the other on each bus, so each axis starts later by the moves
-    before it and its own; its profile is planned for the time left then."""
+    before it and its own; its profile is planned for the time left then.
+
+    `continuous`: joints followed velocity-continuously (the module's docstring), from
+    `start_velocity_steps_s` (a trajectory that takes over from a running one; else at rest)."""
     tol = path_tolerance_steps or {}
     lines = move_times_s or {}
+    cont = [j for j in traj.joints if j in continuous]
+    stepwise = {j: limits[j] for j in traj.joints if j not in cont}
     due = [(k, p) for k, p in enumerate(traj.points) if p.time_s > from_s]
     for k, point in due:                             # points already past: JTC drops them too
         for joint, target in zip(traj.joints, point.positions_steps):
@@ -266,6 +335,10 @@ def plan(traj: Trajectory, start_steps: dict[str, float], limits: dict[str, Join
                     f'{joint}: point {k} at {target / lim.steps_per_unit:g} {lim.unit} is '
                     f'outside min_position..max_position ({lim.min_steps / lim.steps_per_unit:g}'
                     f'..{lim.max_steps / lim.steps_per_unit:g} {lim.unit})')
+    # the last segment: at least min_segment_s, half that where every joint is continuous (a
+    # move that goes out late there only shifts its speed change; a longer tail would pass far
+    # from the points where the plan slows down)
+    tail_s = min_segment_s if stepwise else min_segment_s / 2
     segments: list[Segment] = []
     previous = {j: start_steps[j] for j in traj.joints}
     t0 = from_s
@@ -277,11 +350,15 @@ def plan(traj: Trajectory, start_steps: dict[str, float], limits: dict[str, Join
             k, point = due[j]
             last = j == len(due) - 1
             if not last and (point.time_s - t0 < min_segment_s
-                             or end_s - point.time_s < min_segment_s):
+                             or end_s - point.time_s < tail_s):
                 continue                  # too short for the bus, or leaves a too short tail
             targets = dict(zip(traj.joints, point.positions_steps))
-            profiles = segment_profiles({jn: targets[jn] - previous[jn] for jn in traj.joints},
-                                        point.time_s - t0, limits, PLAN_FRACTIONS)
+            duration_s = point.time_s - t0
+            profiles = segment_profiles({jn: targets[jn] - previous[jn] for jn in stepwise},
+                                        duration_s, stepwise, PLAN_FRACTIONS)
+            if not isinstance(profiles, Unreachable):
+                profiles = _average_speeds(cont, targets, previous, duration_s, limits,
+                                           profiles)
             if isinstance(profiles, Unreachable):
                 if first_problem is None:
                     first_problem = TrajectoryError(
@@ -290,8 +367,8 @@ def plan(traj: Trajectory, start_steps: dict[str, float], limits: dict[str, Join
                 if last:
                     raise first_problem
                 continue                  # a longer segment needs less acceleration
-            moves = _delayed(traj.joints, profiles, targets, previous, point.time_s - t0,
-                             limits, lines)
+            moves = _delayed(traj.joints, profiles, targets, previous, duration_s, limits,
+                             {jn: v for jn, v in lines.items() if jn not in cont})
             if isinstance(moves, Unreachable):
                 if first_problem is None:
                     first_problem = TrajectoryError(
@@ -301,14 +378,304 @@ def plan(traj: Trajectory, start_steps: dict[str, float], limits: dict[str, Join
                     continue              # a longer segment leaves it more time
                 moves = tuple(AxisMove(jn, targets[jn], *profiles[jn]) for jn in traj.joints
                               if jn in profiles)      # it arrives late: the goal decides
-            deviation = _deviation(traj, due[i:j], t0, previous, moves, limits, tol,
-                                   min_segment_s, k)
-            segments.append(Segment(t0, point.time_s, moves, k, j - i, deviation))
+            segments.append(Segment(t0, point.time_s, moves, k, j - i))
             previous.update(targets)
             t0 = point.time_s
             i = j + 1
             break
-    return segments
+    if cont and segments:
+        segments = _continuous(traj, segments, start_steps, limits, cont,
+                               start_velocity_steps_s or {})
+    return _bounded(traj, segments, start_steps, from_s, limits, tol, min_segment_s)
+
+
+def _average_speeds(joints: list[str], targets: dict[str, float], previous: dict[str, float],
+                    duration_s: float, limits: dict[str, JointLimits],
+                    profiles: dict[str, tuple[float, float]]
+                    ) -> dict[str, tuple[float, float]] | Unreachable:
+    """`profiles` with the continuous joints' average speeds over the segment (placeholders:
+    _continuous plans their moves); Unreachable where one is above its max_velocity (with the
+    margin the ramps need)."""
+    out = dict(profiles)
+    for jn in joints:
+        d = abs(targets[jn] - previous[jn])
+        if d == 0:
+            continue
+        v, vmax = d / duration_s, limits[jn].max_velocity_steps_s
+        if v > EDGE_MARGIN * vmax:
+            return Unreachable(jn, f'needs {v:.4g} steps/s on average to cover {d:.6g} steps in '
+                               f'{duration_s:g} s (max_velocity is {vmax:.4g} steps/s)')
+        out[jn] = (v, limits[jn].max_acceleration_steps_s2)
+    return out
+
+
+def ramp_acceleration(traj: Trajectory, joint: str, lim: JointLimits,
+                      start_steps: float | None = None) -> float:
+    """The one acceleration of a continuous joint's ramps (the module's docstring); a drive
+    runs a move start-stop all the same where its speed allows (`ramps`). `start_steps`: where
+    the joint starts, at rest, before the first point."""
+    col = traj.joints.index(joint)
+    pts = list(traj.points)
+    if start_steps is not None and pts and pts[0].time_s > 0:
+        pts.insert(0, Point(0.0, tuple(start_steps if c == col else 0.0
+                                       for c in range(len(traj.joints)))))
+    given = [abs(p.accelerations_steps_s2[col]) for p in pts if p.accelerations_steps_s2]
+    if not given:                                  # from the positions: second differences
+        for a, b, c in zip(pts, pts[1:], pts[2:]):
+            v1 = (b.positions_steps[col] - a.positions_steps[col]) / (b.time_s - a.time_s)
+            v2 = (c.positions_steps[col] - b.positions_steps[col]) / (c.time_s - b.time_s)
+            given.append(abs(v2 - v1) / ((c.time_s - a.time_s) / 2))
+    top = lim.max_acceleration_steps_s2
+    return min(EDGE_MARGIN * top, max(PLAN_FRACTIONS[0] * top,
+                                      RAMP_SHAPE * max(given, default=0.0)))
+
+
+def _continuous(traj: Trajectory, segments: list[Segment], start_steps: dict[str, float],
+                limits: dict[str, JointLimits], joints: list[str],
+                start_velocity: dict[str, float]) -> list[Segment]:
+    """The segments with velocity-continuous moves for `joints` (the module's docstring);
+    TrajectoryError where a joint cannot pass a point in time within its max_velocity."""
+    moves: list[dict[str, AxisMove]] = [{m.joint: m for m in seg.moves} for seg in segments]
+    for joint in joints:
+        col = traj.joints.index(joint)
+        lim = limits[joint]
+        a = ramp_acceleration(traj, joint, lim, start_steps[joint])
+        vias = [traj.points[seg.point].positions_steps[col] for seg in segments]
+        x, u = start_steps[joint], start_velocity.get(joint, 0.0)
+        # the move in effect: (when, entry position, entry velocity, target, cruise)
+        effect: AxisMove | None = None          # the move in effect, since effect_s
+        effect_s = 0.0
+        before = start_steps[joint]
+        for n, seg in enumerate(segments):
+            via = vias[n]
+            moves[n].pop(joint, None)
+            if via == before:
+                continue                                 # holds: braked here before
+            way = 1.0 if via > before else -1.0
+            after = vias[n + 1] if n + 1 < len(vias) else via
+            planned = traj.points[seg.point].velocities_steps_s
+            stops = (after - via) * way <= 0 or (bool(planned) and planned[col] * way <= 0)
+            target = via if stops else after
+            average = (via - before) / (seg.end_s - seg.start_s)
+            if effect is None:
+                at, x_e, u_e = seg.start_s, x, u
+            elif effect.target_steps == effect.via_steps:
+                at, x_e, u_e = seg.start_s, effect.via_steps, 0.0    # at rest on its point
+            else:
+                t_e = effect_s
+                _, u_now = effect.state(seg.start_s - t_e)
+                change = a if abs(average) > abs(u_now) else deceleration(a, lim)
+                quick = ramps(change, max(abs(average), abs(u_now)), lim.start_stop_steps_s)
+                half = 0.0 if u_now == 0.0 else abs(average - u_now) / (2 * quick)
+                at = max(t_e, seg.start_s - half)
+                x_e, u_e = effect.state(at - t_e)
+            if (via - x_e) * way <= 0:       # there already (a fraction of a step): cruise on
+                found = (max(abs(average), lim.min_velocity_steps_s, 1e-3), a, a)
+            else:
+                found = cruise(x_e, u_e, via, target, seg.end_s - at, a, lim)
+            if found is None and effect is None and u_e != 0.0:
+                # taking over a joint at speed that cannot turn in time: planned from rest (it
+                # arrives late; the goal tolerance decides), as a rest-to-rest segment is
+                u_e = 0.0
+                found = cruise(x_e, u_e, via, target, seg.end_s - at, a, lim)
+            if found is None:
+                u_ = lim.steps_per_unit
+                raise TrajectoryError(
+                    f'{joint}: point {seg.point} ({seg.end_s:g} s) cannot be reached in time '
+                    f'from {x_e / u_:.6g} {lim.unit} at {u_e / u_:.4g} {lim.unit}/s with ramps '
+                    f'of {a / u_:.4g} {lim.unit}/s^2 within max_velocity '
+                    f'({lim.max_velocity_steps_s / u_:.4g} {lim.unit}/s)')
+            v, ramp, dec = found
+            effect = moves[n][joint] = AxisMove(joint, target, v, ramp, at - seg.start_s, via,
+                                                x_e, u_e, lim.start_stop_steps_s, dec)
+            effect_s = at
+            before = via
+    return [dataclasses.replace(seg, moves=tuple(ms[j] for j in traj.joints if j in ms))
+            for seg, ms in zip(segments, moves)]
+
+
+def _bounded(traj: Trajectory, segments: list[Segment], start_steps: dict[str, float],
+             from_s: float, limits: dict[str, JointLimits], tol: dict[str, float],
+             min_segment_s: float) -> list[Segment]:
+    """The segments with how far their plan passes from the trajectory's points (per joint,
+    Segment.deviation_steps, at the points merged into each segment and at its end point);
+    TrajectoryError at the first point farther than its joint's path bound in `tol`."""
+    out = []
+    for n, seg in enumerate(segments):
+        first = segments[n - 1].point + 1 if n else 0
+        worst: dict[str, float] = {}
+        for k in range(first, seg.point + 1):
+            point = traj.points[k]
+            if point.time_s <= from_s:
+                continue
+            planned = planned_at(segments, start_steps, point.time_s)
+            for joint, want in zip(traj.joints, point.positions_steps):
+                err = abs(planned[0].get(joint, start_steps[joint]) - want)
+                worst[joint] = max(worst.get(joint, 0.0), err)
+                bound = tol.get(joint, 0.0)
+                if bound > 0 and err > bound + 1e-6:
+                    lim = limits[joint]
+                    u = lim.steps_per_unit
+                    raise TrajectoryError(
+                        f'{joint}: point {k} ({point.time_s:g} s) cannot be followed within the '
+                        f'path bound {bound / u:.4g} {lim.unit}: the plan passes '
+                        f'{err / u:.4g} {lim.unit} from it (segment {seg.start_s:g} s to '
+                        f'{seg.end_s:g} s; {seg.merged} points merged into it: the bus needs '
+                        f'segments of at least {min_segment_s:.3g} s). Widen the bound (the '
+                        f"goal's path_tolerance, constraints.{joint}.trajectory or "
+                        f'constraints.{joint}.path_bound), send points at least '
+                        f"{min_segment_s:.3g} s apart (MoveIt's resample_dt), or give the bus "
+                        'more time per move (a faster line: a higher baud rate)')
+        out.append(dataclasses.replace(seg, deviation_steps=tuple(worst.items())))
+    return out
+
+
+def planned_at(segments: Sequence[Segment], start_steps: dict[str, float], clock_s: float
+               ) -> tuple[dict[str, float], dict[str, float]]:
+    """The planned position and velocity of each joint at trajectory time clock_s: the
+    trapezoids of rest-to-rest moves, each from when its move reaches the drive, and the
+    profiles of continuous moves from when they take effect."""
+    pos = dict(start_steps)
+    vel = {j: 0.0 for j in start_steps}
+    for seg in segments:
+        for m in seg.moves:
+            te = seg.start_s + m.start_delay_s
+            if m.via_steps is not None:
+                if clock_s > te:
+                    pos[m.joint], vel[m.joint] = m.state(clock_s - te)
+                continue
+            if clock_s <= seg.start_s:
+                continue
+            tau = min(clock_s, seg.end_s) - seg.start_s
+            profile = (pos[m.joint], m.target_steps, m.velocity_steps_s,
+                       m.acceleration_steps_s2, tau - m.start_delay_s)
+            vel[m.joint] = along_velocity(*profile) if clock_s < seg.end_s else 0.0
+            pos[m.joint] = along(*profile)
+    return pos, vel
+
+
+def _pieces(x0: float, u0: float, target: float, vmax: float, a: float, dec: float
+            ) -> list[tuple[float, float, float]]:
+    """(duration, velocity at its start, acceleration) of each piece of a drive's move from x0
+    at velocity u0 to `target` with cruise vmax and ramps a (inf: start-stop): a profile
+    generator's, as the simulators' (stepper_sim.motion): too fast to stop in time, or moving
+    away, it stops first; then it ramps to vmax (or less: a triangle), cruises, and brakes to
+    rest on the target; speeding up at a, slowing down at dec."""
+    d = target - x0
+    if d == 0.0 and u0 == 0.0:
+        return []
+    s = (d > 0) - (d < 0) or -((u0 > 0) - (u0 < 0))
+    u = u0 * s
+    ia = 0.0 if math.isinf(a) else 0.5 / a
+    idc = 0.0 if math.isinf(dec) else 0.5 / dec
+    distance = abs(d)
+    if u < 0.0 or u * u * idc > distance * (1.0 + 1e-12) + 1e-9:
+        back = (u0 > 0) - (u0 < 0)
+        stop = [] if math.isinf(dec) else [(abs(u0) / dec, u0, -back * dec)]
+        return stop + _pieces(x0 + back * u0 * u0 * idc, 0.0, target, vmax, a, dec)
+    out = []
+    if u > vmax:
+        if not math.isinf(dec):
+            out.append(((u - vmax) / dec, s * u, -s * dec))
+        distance -= (u * u - vmax * vmax) * idc
+        u = vp = vmax
+    elif ia + idc == 0.0:
+        vp = vmax
+    else:
+        vp = max(u, min(vmax, math.sqrt(max((distance + u * u * ia) / (ia + idc), 0.0))))
+        if vp > u and not math.isinf(a):
+            out.append(((vp - u) / a, s * u, s * a))
+        distance -= (vp * vp - u * u) * ia
+    cruise = max(distance - vp * vp * idc, 0.0)
+    if cruise > 0.0 and vp > 0.0:
+        out.append((cruise / vp, s * vp, 0.0))
+    if not math.isinf(dec) and vp > 0.0:
+        out.append((vp / dec, s * vp, -s * dec))
+    return out
+
+
+def motion_state(x0: float, u0: float, target: float, vmax: float, a: float, tau_s: float,
+                 dec: float | None = None) -> tuple[float, float]:
+    """(position, velocity) tau_s after a drive at x0 moving at u0 (signed) took a move to
+    `target` with cruise vmax, acceleration a and deceleration dec (None: a) (_pieces); at rest
+    on the target after the end."""
+    x, t = x0, 0.0
+    if tau_s <= 0:
+        return x0, u0
+    for dur, v, acc in _pieces(x0, u0, target, vmax, a, a if dec is None else dec):
+        if tau_s < t + dur:
+            tau = tau_s - t
+            return x + v * tau + 0.5 * acc * tau * tau, v + acc * tau
+        x += v * dur + 0.5 * acc * dur * dur
+        t += dur
+    return target, 0.0
+
+
+def ramps(a: float, v: float, start_stop_steps_s: float) -> float:
+    """The acceleration a drive runs a move at cruise v with: inf (start-stop, no ramps) at or
+    below its start-stop velocity (X-PLUS MT §13 "Motion Profiles"), else a."""
+    return math.inf if v <= start_stop_steps_s else a
+
+
+def cruise(x0: float, u0: float, via: float, target: float, left_s: float, a: float,
+           lim: JointLimits) -> tuple[float, float, float] | None:
+    """(cruise speed, acceleration, deceleration) of a continuous move (solve_cruise) with
+    ramps of a, else of EDGE_MARGIN of the joint's max_acceleration where a cannot make it (a
+    move gone out late; an X-PLUS MT under way keeps its ramps all the same: it arrives a
+    little late); None where none can within max_velocity."""
+    top = lim.max_acceleration_steps_s2
+    for ramp in (a, EDGE_MARGIN * top):
+        if ramp >= a:
+            dec = deceleration(ramp, lim)
+            v = solve_cruise(x0, u0, via, target, left_s, ramp,
+                             max(lim.min_velocity_steps_s, 1e-3), lim.max_velocity_steps_s,
+                             lim.start_stop_steps_s, dec)
+            if v is not None:
+                return v, ramp, dec
+    return None
+
+
+def deceleration(a: float, lim: JointLimits) -> float:
+    """A continuous move's deceleration: its acceleration (RAMP_SHAPE's comment)."""
+    return a
+
+
+def solve_cruise(x0: float, u0: float, via: float, target: float, left_s: float, a: float,
+                 v_lo: float, v_hi: float, start_stop_steps_s: float = 0.0,
+                 dec: float | None = None) -> float | None:
+    """The least cruise speed in v_lo..v_hi with which a drive at x0 moving at u0, given a move
+    to `target` (beyond `via`, or `via` itself) with ramps a (`ramps`), is at `via` after
+    left_s (the position then grows with the speed: bisection); v_lo where even that gets
+    there; None where v_hi does not."""
+    way = 1.0 if via >= x0 else -1.0
+
+    d = a if dec is None else dec
+
+    def reached(v: float) -> bool:
+        return (motion_state(x0, u0, target, v, ramps(a, v, start_stop_steps_s), left_s,
+                             ramps(d, v, start_stop_steps_s))[0] - via) * way >= -1e-6
+
+    if left_s <= 0:
+        return None
+    if reached(v_lo):
+        return v_lo
+    # start-stop up to start_stop_steps_s, ramps above: each range grows with the speed
+    jump = min(start_stop_steps_s, v_hi)
+    if jump > v_lo and reached(jump):
+        lo, hi = v_lo, jump
+    elif reached(v_hi):
+        lo, hi = max(v_lo, jump), v_hi
+    else:
+        return None
+    for _ in range(50):
+        mid = 0.5 * (lo + hi)
+        if reached(mid):
+            hi = mid
+        else:
+            lo = mid
+        if hi - lo <= 1e-6 * hi:
+            break
+    return hi
 
 
 def _delayed(joints, profiles: dict[str, tuple[float, float]], targets: dict[str, float],
@@ -336,35 +703,6 @@ def _delayed(joints, profiles: dict[str, tuple[float, float]], targets: dict[str
             v, a = again
         moves.append(AxisMove(jn, targets[jn], v, a, delay))
     return tuple(moves)
-
-
-def _deviation(traj: Trajectory, skipped: list[tuple[int, Point]], t0: float,
-               previous: dict[str, float], moves: tuple[AxisMove, ...],
-               limits: dict[str, JointLimits], tol: dict[str, float], min_segment_s: float,
-               end_point: int) -> tuple[tuple[str, float], ...]:
-    """How far the segment's plan passes from each point merged into it, per joint; a
-    TrajectoryError where that is beyond the joint's path tolerance."""
-    if not skipped:
-        return ()
-    by_joint = {m.joint: m for m in moves}
-    worst = {}
-    for k, point in skipped:
-        for joint, want in zip(traj.joints, point.positions_steps):
-            m = by_joint.get(joint)
-            at = previous[joint] if m is None else along(
-                previous[joint], m.target_steps, m.velocity_steps_s, m.acceleration_steps_s2,
-                point.time_s - t0 - m.start_delay_s)
-            err = abs(at - want)
-            worst[joint] = max(worst.get(joint, 0.0), err)
-            if tol.get(joint, 0.0) > 0 and err > tol[joint]:
-                lim = limits[joint]
-                u = lim.steps_per_unit
-                raise TrajectoryError(
-                    f'{joint}: point {k} ({point.time_s:g} s) cannot be followed within the '
-                    f'path tolerance {tol[joint] / u:.4g} {lim.unit}: the bus needs segments of '
-                    f'at least {min_segment_s:.3g} s, and the segment from {t0:g} s to point '
-                    f'{end_point} passes {err / u:.4g} {lim.unit} from it')
-    return tuple(worst.items())
 
 
 def along(p0: float, p1: float, v: float, a: float, tau: float) -> float:

@@ -49,6 +49,32 @@ def test_good_file_gives_config(tmp_path):
     assert node.describe_parameter('drives.axis1.max_velocity').description
 
 
+def test_a_vendors_path_bound_default_is_its_joints_in_rad_and_a_given_one_wins(tmp_path):
+    """constraints.<joint>.path_bound: 0.05 rad, 0.005 m, or the vendor's own default for a
+    joint in rad (Vendor.joint_defaults: the X-MIND K's 0.4 rad); a value given is taken."""
+    import dataclasses
+
+    from stepper_drivers.vendors.xmind_k import VENDOR as XMIND_K
+    assert XMIND_K.joint_defaults == {'path_bound': 0.4}
+    text = GOOD + '    constraints.j1.goal: 0.01\n'
+    for vendor, j1 in ((VENDOR, 0.05), (dataclasses.replace(VENDOR, joint_defaults={
+            'path_bound': 0.4}), 0.4)):
+        f = tmp_path / 'p.yaml'
+        f.write_text(text)
+        args = ['x', '--ros-args', '--params-file', str(f)]
+        context = rclpy.Context()
+        rclpy.init(args=args, context=context)
+        node = rclpy.create_node('n', context=context)
+        try:
+            declare_all(node, vendor, args)
+        finally:
+            end(node, context)
+        assert node.get_parameter('constraints.j1.path_bound').value == j1
+        assert node.get_parameter('constraints.axis2.path_bound').value == 0.005    # in m
+    _, node = declare_with(tmp_path, text + '    constraints.j1.path_bound: 0.2\n')
+    assert node.get_parameter('constraints.j1.path_bound').value == 0.2
+
+
 @pytest.mark.parametrize('edit, message', [
     (('port: 1502', 'port: 70000'),
      r'parameter port: 70000 is out of range \(allowed: an integer from 1 to 65535\)'),

@@ -4,8 +4,8 @@ import math
 
 import pytest
 
-from stepper_drivers.trajectory import (EDGE_MARGIN, JointLimits, TrajectoryError, build, plan,
-                                        sample, trapezoid)
+from stepper_drivers.trajectory import (EDGE_MARGIN, JointLimits, TrajectoryError, build,
+                                        motion_state, plan, planned_at, sample, trapezoid)
 
 LIM = JointLimits(min_steps=-1e6, max_steps=1e6, max_velocity_steps_s=4000.0,
                   max_acceleration_steps_s2=20000.0, steps_per_unit=1000.0, unit='rad')
@@ -181,8 +181,9 @@ def test_merging_beyond_the_path_tolerance_is_refused_naming_joint_point_and_tol
     dev = dict(seg.deviation_steps)
     assert 40 <= dev['a'] <= 60 and 40 <= dev['b'] <= 60
     with pytest.raises(TrajectoryError, match=r'(a|b): point 0 \(0.2 s\) cannot be followed '
-                                              r'within the path tolerance 0.03 rad: the bus '
-                                              r'needs segments of at least 0.3 s'):
+                                              r'within the path bound 0.03 rad: the plan passes '
+                                              r'0.05 rad from it .*the bus needs segments of at '
+                                              r'least 0.3 s'):
         plan(traj, {'a': 0.0, 'b': 0.0}, lims, min_segment_s=0.3,
              path_tolerance_steps={'a': 30.0, 'b': 30.0})
 
@@ -195,3 +196,107 @@ def test_a_segment_slower_than_the_drive_can_run_goes_at_its_least_speed():
     assert m.acceleration_steps_s2 <= 20000.0
     # it arrives early and stays: never past the target
     assert profile_distance(m.velocity_steps_s, m.acceleration_steps_s2, 1.0) >= 10
+
+
+# ------------------------------------------------------------ velocity-continuous segments
+RD4 = JointLimits(min_steps=-1e6, max_steps=1e6, max_velocity_steps_s=1600.0,
+                  max_acceleration_steps_s2=9940.0, steps_per_unit=1024 / (2 * math.pi),
+                  unit='rad', min_velocity_steps_s=1.0)
+
+
+def quintic_line(travel_steps, duration_s, dt_s):
+    """MoveIt-like: positions, velocities and accelerations every dt_s, the start at t=0."""
+    n = int(round(duration_s / dt_s))
+    times, pos, vel, acc = [], [], [], []
+    for k in range(n + 1):
+        s = k / n
+        times.append(k * dt_s)
+        pos.append([travel_steps * (10 * s ** 3 - 15 * s ** 4 + 6 * s ** 5)])
+        vel.append([travel_steps * (30 * s ** 2 - 60 * s ** 3 + 30 * s ** 4) / duration_s])
+        acc.append([travel_steps * (60 * s - 180 * s ** 2 + 120 * s ** 3) / duration_s ** 2])
+    return build(['a'], times, pos, ['a'], vel, acc)
+
+
+def test_a_continuous_joint_passes_its_points_on_time_and_at_speed():
+    traj = quintic_line(326.0, 3.0, 0.1)                # 2 rad of an RD4 joint in 3 s
+    segs = plan(traj, {'a': 0.0}, {'a': RD4}, min_segment_s=0.3, continuous={'a'})
+    assert all(s.end_s - s.start_s >= 0.3 - 1e-9 for s in segs)
+    for n, seg in enumerate(segs):
+        (m,) = seg.moves
+        planned = traj.points[seg.point].velocities_steps_s[0]
+        assert m.via_steps == traj.points[seg.point].positions_steps[0]
+        if n < len(segs) - 1:
+            # towards the next point: the drive never brakes for this one
+            assert m.target_steps == traj.points[segs[n + 1].point].positions_steps[0]
+        else:
+            assert m.target_steps == 326.0                    # the end: at rest on it
+        if n:
+            assert m.start_delay_s < 0                        # before its segment starts
+        pos, vel = planned_at(segs, {'a': 0.0}, seg.end_s)
+        assert pos['a'] == pytest.approx(m.via_steps, abs=0.5)   # on time within half a step
+        if 0.5 <= seg.end_s <= 2.5:
+            assert vel['a'] >= 0.25 * planned > 0               # not stopped at its point
+    # between the points too: never below a quarter of the plan in the middle 80 %
+    for k in range(30, 271):
+        t = k / 100
+        s = t / 3.0
+        want = 326.0 * (30 * s ** 2 - 60 * s ** 3 + 30 * s ** 4) / 3.0
+        assert planned_at(segs, {'a': 0.0}, t)[1]['a'] >= 0.25 * want, t
+
+
+def test_rest_to_rest_segments_stop_at_every_point():
+    """The same trajectory planned for a drive that takes no target on the way (X-MIND K):
+    standing at the end of every segment."""
+    traj = quintic_line(326.0, 3.0, 0.1)
+    segs = plan(traj, {'a': 0.0}, {'a': RD4}, min_segment_s=0.3)
+    for seg in segs[:-1]:
+        assert planned_at(segs, {'a': 0.0}, seg.end_s - 1e-6)[1]['a'] == pytest.approx(0, abs=1)
+
+
+def test_a_continuous_joint_brakes_to_rest_where_it_turns():
+    traj = build(['a'], [0.5, 1.0, 1.5], [[200], [400], [100]], ['a'])
+    segs = plan(traj, {'a': 0.0}, {'a': RD4}, continuous={'a'})
+    first, turn, back = (s.moves[0] for s in segs)
+    assert first.target_steps == 400 and turn.target_steps == 400 == turn.via_steps
+    assert back.start_delay_s == 0 and back.entry_velocity_steps_s == 0
+    pos, vel = planned_at(segs, {'a': 0.0}, 1.0)
+    assert pos['a'] == pytest.approx(400, abs=0.5) and vel['a'] == pytest.approx(0, abs=1.0)
+
+
+def test_the_profile_model_is_the_simulated_drives():
+    """motion_state against stepper_sim's MotionModel (the simulators' profile generator):
+    a move taken on the way, faster and slower, and one that has to turn first."""
+    from stepper_sim.motion import MotionModel
+    for x0, u0, target, v, a in ((0, 0, 1000, 400, 3000), (100, 300, 900, 500, 2000),
+                                 (100, 300, 900, 150, 2000), (500, 400, 200, 300, 2500)):
+        t = [0.0]
+        sim = MotionModel(0.0, clock=lambda t=t: t[0])
+        if u0:
+            sim.run_velocity(u0, math.inf)
+        sim.set_position(x0)
+        sim.move_to(target, v, a, a)
+        for tau in (0.05, 0.2, 0.5, 1.0, 3.0):
+            t[0] = tau
+            sim.update(tau)
+            x, vel = motion_state(x0, u0, target, v, a, tau)
+            assert x == pytest.approx(sim.position_steps, abs=1e-6), (x0, u0, target, tau)
+            assert vel == pytest.approx(sim.velocity_hz, abs=1e-6)
+
+
+def test_a_path_bound_the_merged_continuous_plan_breaks_is_refused_naming_what_to_change():
+    traj = quintic_line(326.0, 3.0, 0.05)
+    lims = {'a': RD4}
+    segs = plan(traj, {'a': 0.0}, lims, min_segment_s=0.3, continuous={'a'},
+                path_tolerance_steps={'a': 0.05 * RD4.steps_per_unit})
+    worst = max(d for s in segs for _j, d in s.deviation_steps)
+    assert 1.0 < worst < 0.05 * RD4.steps_per_unit          # steps: merged, within 0.05 rad
+    bound = 0.5 * worst
+    with pytest.raises(TrajectoryError) as e:
+        plan(traj, {'a': 0.0}, lims, min_segment_s=0.3, continuous={'a'},
+             path_tolerance_steps={'a': bound})
+    text = str(e.value)
+    assert text.startswith('a: point ') and f'path bound {bound / RD4.steps_per_unit:.4g} rad' \
+        in text
+    for what in ('at least 0.3 s', "MoveIt's resample_dt", 'baud rate',
+                 'constraints.a.path_bound'):
+        assert what in text, text
