@@ -249,7 +249,7 @@ JOINT_PARAMS = (
       'where the bus needs them, velocity-continuous segments) where neither the goal '
       "(path_tolerance position) nor constraints.<joint>.trajectory gives one; a trajectory "
       'the bus cannot carry within it is rejected before anything moves. 0 = not bounded; '
-      'default 0.05 rad (X-MIND K 0.4 rad: docs/moveit.md), 0.005 m for unit m [rad or m]',
+      'default 0.05 rad (X-MIND K 0.5 rad: docs/moveit.md), 0.005 m for unit m [rad or m]',
       0.0, INF, read_only=False),
 )
 # path_bound's default for a joint in m (the rad default, 0.05, would be 5 cm)

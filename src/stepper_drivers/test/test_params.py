@@ -51,14 +51,14 @@ def test_good_file_gives_config(tmp_path):
 
 def test_a_vendors_path_bound_default_is_its_joints_in_rad_and_a_given_one_wins(tmp_path):
     """constraints.<joint>.path_bound: 0.05 rad, 0.005 m, or the vendor's own default for a
-    joint in rad (Vendor.joint_defaults: the X-MIND K's 0.4 rad); a value given is taken."""
+    joint in rad (Vendor.joint_defaults: the X-MIND K's 0.5 rad); a value given is taken."""
     import dataclasses
 
     from stepper_drivers.vendors.xmind_k import VENDOR as XMIND_K
-    assert XMIND_K.joint_defaults == {'path_bound': 0.4}
+    assert XMIND_K.joint_defaults == {'path_bound': 0.5}
     text = GOOD + '    constraints.j1.goal: 0.01\n'
     for vendor, j1 in ((VENDOR, 0.05), (dataclasses.replace(VENDOR, joint_defaults={
-            'path_bound': 0.4}), 0.4)):
+            'path_bound': 0.5}), 0.5)):
         f = tmp_path / 'p.yaml'
         f.write_text(text)
         args = ['x', '--ros-args', '--params-file', str(f)]

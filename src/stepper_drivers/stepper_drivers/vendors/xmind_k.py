@@ -1056,9 +1056,9 @@ VENDOR = drive.Vendor(
     make_drive=make_drive,
     drive_defaults={'steps_per_rev': 2000.0, 'homing.method': 3},   # RS D2 factory default
     # At 9600 baud two axes need segments of 0.85-1.5 s (a move: WN, PS and the status strings
-    # per axis): a 3 s MoveIt plan of about 1 rad becomes 2-3 segments that pass 0.15-0.37 rad
+    # per axis): a 3 s MoveIt plan of about 1 rad becomes 2-3 segments that pass 0.15-0.45 rad
     # from its points (docs/moveit.md). The default bound takes such plans and refuses coarser.
-    joint_defaults={'path_bound': 0.4},
+    joint_defaults={'path_bound': 0.5},
     validate=validate,
     scanner=xmind_k_scan.SCANNER,
 )
