@@ -311,3 +311,32 @@ def test_line_noise_during_reconnects_is_a_link_error_not_another_device(bench):
         assert noisy and all(m.not_driven == '' for m in noisy), [m.not_driven for m in noisy]
     log = bench.node.output()
     assert '02?S,RS,D2' in log and 'not driven' not in log, log[-3000:]
+
+
+def test_a_trajectory_with_broadcast_start_starts_its_joints_by_one_broadcast_per_segment(
+        procs, ros, tmp_path):
+    """broadcast_start true (the line holds these three drives only): once the node's line probe
+    found no other address answering, each segment of a follow_joint_trajectory goal of the
+    three joints starts them by one broadcast 99PS (the simulator logs each broadcast string it
+    heard), and they end where the goal says."""
+    from control_msgs.action import FollowJointTrajectory
+    from rosharness import TrajectoryGoal
+    from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+    from builtin_interfaces.msg import Duration
+    b = Bench(procs, ros, tmp_path, line_timing=True, node_args=(
+        '-p', 'broadcast_start:=true', '-p', 'broadcast_probe_wait_ms:=10',
+        '-p', 'timeout_s:=0.06'))       # the probe: 45 silent addresses of 10 ms + this each
+    wait_for(lambda: 'line probe: no answer' in b.node.output(), 15.0, 'the line probe')
+    for d in DRIVES:
+        b.enable(d)
+    joints = [f'xmind_joint{i}' for i in (1, 2, 3)]
+    points = [(1.6, [1.0, -0.8, 0.6]), (3.2, [0.3, 0.2, -0.4])]     # 1.27 s at least (3 axes)
+    goal = FollowJointTrajectory.Goal(trajectory=JointTrajectory(joint_names=joints, points=[
+        JointTrajectoryPoint(positions=p, time_from_start=Duration(
+            sec=int(t), nanosec=int(round((t - int(t)) * 1e9)))) for t, p in points]))
+    c = TrajectoryGoal(b, goal)
+    result = c.result(10.0)
+    assert result.error_code == 0, result.error_string
+    assert b.sim.output().count('broadcast 99PS,228') == 2, b.sim.output()[-2000:]
+    for d, want in zip(DRIVES, points[-1][1]):
+        assert b.fresh_true_steps(d) == pytest.approx(want * STEPS_PER_RAD, abs=1.0)

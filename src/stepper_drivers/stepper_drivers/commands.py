@@ -39,6 +39,10 @@ class Command:
     # step-wise, and the drive is still polled between its steps (a stream of set points that
     # lasts seconds: the drive's state must stay fresh meanwhile)
     polled: bool = False
+    # other drives of the bus the job also writes (a group start queued under one drive): the
+    # owner counts its start and end as writes of each of them too (snapshot provenance); only
+    # the job's own drive orders, drops or cuts it short (a stop of another drive does not)
+    also: tuple[str, ...] = ()
 
     # The constructors: one per kind of command.
     @classmethod
@@ -61,9 +65,11 @@ class Command:
         return cls(JobKind.COMMAND, fn, label, motion=False)
 
     @classmethod
-    def move(cls, fn: Callable[[], Any], label: str, polled: bool = False) -> Command:
-        """A move or a homing: it replaces any velocity run, so it disarms the watchdog."""
-        return cls(JobKind.COMMAND, fn, label, disarms=True, polled=polled)
+    def move(cls, fn: Callable[[], Any], label: str, polled: bool = False,
+             also: tuple[str, ...] = ()) -> Command:
+        """A move or a homing: it replaces any velocity run, so it disarms the watchdog (of
+        its own drive: not of the `also` drives, whose part the job may leave out)."""
+        return cls(JobKind.COMMAND, fn, label, disarms=True, polled=polled, also=tuple(also))
 
     @classmethod
     def homing(cls, fn: Callable[[], Any], label: str = 'home') -> Command:

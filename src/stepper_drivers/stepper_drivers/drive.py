@@ -26,7 +26,7 @@ import dataclasses
 import enum
 import time
 import types
-from typing import Any, Callable, Generator, Mapping, TypeVar
+from typing import Any, Callable, Generator, Mapping, Sequence, TypeVar
 
 from .scanning import Scanner
 
@@ -218,6 +218,33 @@ class Bus(abc.ABC):
         """Trouble of the link itself that its drives' states do not show (a CAN controller's
         error frames, bus-off): ('warn' or 'error', text), or None. The node raises the
         link's /diagnostics level by it and adds the text to each drive's status alarms."""
+        return None
+
+    # Group start: moves of several drives of this bus that begin in one instant (the X-MIND K:
+    # one broadcast string). Every other bus has none (the defaults below).
+    def group_start(self, drives: Sequence[Drive]
+                    ) -> Callable[[Sequence[tuple[Drive, int, Motion]]], Steps[Any]] | None:
+        """Called when the caller decides to start `drives` (two or more of this bus)
+        together, before it queues the job (any thread; reads only): None where the bus has no
+        group start; else the starter, which notes now what it needs of each drive (a stop or
+        disable of one from now on leaves that drive out). The caller then runs
+        `starter(moves)` in ONE job of the bus owner (Command.move under one of the drives,
+        `also` the others: supervisor/__init__.py), moves being (drive, target_steps, Motion)
+        as move_to takes them, one per drive of `drives`. Step-wise; it refuses as move_to does
+        (DriveError, nothing sent) and returns an object with `started` (the names of the
+        drives whose move went out), `skipped` (name -> why that drive's move did not go out:
+        a stop, a refusal, an unconfirmed write; nothing else of the job is undone) and
+        `sent_t` (time.monotonic() when the string that started the last drive was on the
+        wire, None when none was). Where it cannot start them together (the bus decides) it
+        starts each drive on its own, one after the other, in the same job."""
+        return None
+
+    def group_start_check(self) -> Callable[[], Steps[str]] | None:
+        """What the bus must check on the link before group_start may start drives together
+        (X-MIND K: the line probe for drives of no node), as the fn of a MAINTENANCE job of the
+        bus owner, which the node queues once a drive of the bus connected; it returns a line
+        for the log. None: nothing to check now (the default; or the check has run since the
+        link was opened, or is under way)."""
         return None
 
 

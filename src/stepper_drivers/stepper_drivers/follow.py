@@ -41,7 +41,7 @@ import threading
 import time
 from typing import Callable
 
-from .drive import Drive, InterpolatingDrive, Motion, is_steps
+from .drive import Drive, DriveError, InterpolatingDrive, Motion, is_steps
 from .commands import Command
 from .supervisor import BusSupervisor
 from .trajectory import (EDGE_MARGIN, AxisMove, JointLimits, Segment, Trajectory,
@@ -309,26 +309,30 @@ class Run:
             # another sends its first moves at once, whatever the old run's move is doing. A
             # drive that takes no command while it runs (X-MIND K) waits in
             # until_ready_for_move for a run that ends.
+            # Rest-to-rest moves of two or more axes on one bus that can start them in one
+            # instant (Bus.group_start: the X-MIND K's broadcast) go out as one job, once every
+            # one of them may start (none still on the way).
             end_t = self.start_t + seg.end_s
-            waiting = [m for m in seg.moves if m.joint not in self.streamed]
+            waiting = self._units([m for m in seg.moves if m.joint not in self.streamed])
             while waiting:
-                for move in list(waiting):
-                    axis = self.follower.axes[move.joint]
-                    to = move.target_steps if move.via_steps is None else move.via_steps
-                    if clock() < end_t and move.joint in before and self._still_on_the_way(
-                            axis, seg_t, previous[move.joint], before[move.joint], to):
+                for unit in list(waiting):
+                    on_the_way = [
+                        move.joint in before and self._still_on_the_way(
+                            self.follower.axes[move.joint], seg_t, previous[move.joint],
+                            before[move.joint], self._to(move))
+                        for move in unit]
+                    if clock() < end_t and any(on_the_way):
                         continue
                     with self.follower.submit_lock:
                         if self._cancel.is_set():
                             return self._end
                         if self._replaced():
                             return _aborted(INVALID_GOAL, REPLACED)
-                        self._jobs.append(axis.sup.submit(axis.drive_name, Command.move(
-                            self._move_job(axis, move, previous[move.joint], seg_t, end_t),
-                            f'trajectory segment to {move.target_steps:g} steps')))
-                    before[move.joint] = previous[move.joint]
-                    previous[move.joint] = to
-                    waiting.remove(move)
+                        self._submit(unit, previous, seg_t, end_t)
+                    for move in unit:
+                        before[move.joint] = previous[move.joint]
+                        previous[move.joint] = self._to(move)
+                    waiting.remove(unit)
                 if waiting:
                     problem = self._check()
                     if problem is not None:
@@ -358,6 +362,103 @@ class Run:
                 self._stop_axes()
                 return _aborted(GOAL_TOLERANCE_VIOLATED, '; '.join(far))
             self._cancel.wait(TICK_S)
+
+    @staticmethod
+    def _to(move) -> float:
+        """Where the move takes its axis by the segment's end (a continuous move's point)."""
+        return move.target_steps if move.via_steps is None else move.via_steps
+
+    def _units(self, moves: list) -> list[list]:
+        """The segment's moves as they are submitted: each alone, but the rest-to-rest moves
+        of two or more axes on one bus with a group start together (in the order of their
+        first move)."""
+        units: list[list] = []
+        groups: dict[int, list] = {}
+        for move in moves:
+            axis = self.follower.axes[move.joint]
+            if move.via_steps is None:
+                group = groups.get(id(axis.sup))
+                if group is None:
+                    group = groups[id(axis.sup)] = []
+                    units.append(group)
+                group.append(move)
+            else:
+                units.append([move])
+        out: list[list] = []
+        for unit in units:
+            axes = [self.follower.axes[m.joint] for m in unit]
+            if len(unit) > 1 and axes[0].drive.bus.group_start(
+                    [a.drive for a in axes]) is None:
+                out += [[m] for m in unit]           # no group start: one job per axis
+            else:
+                out.append(unit)
+        return out
+
+    def _submit(self, unit: list, previous: dict[str, float], seg_t: float,
+                end_t: float) -> None:
+        """Submit the unit's job(s) (under submit_lock): one move job per axis, or for a
+        group one job under its first axis's drive that also writes the others' drives."""
+        axes = [self.follower.axes[m.joint] for m in unit]
+        starter = axes[0].drive.bus.group_start([a.drive for a in axes]) \
+            if len(unit) > 1 else None
+        if starter is None:
+            for axis, move in zip(axes, unit):
+                self._jobs.append(axis.sup.submit(axis.drive_name, Command.move(
+                    self._move_job(axis, move, previous[move.joint], seg_t, end_t),
+                    f'trajectory segment to {move.target_steps:g} steps')))
+            return
+        members = [(a, m, previous[m.joint]) for a, m in zip(axes, unit)]
+        self._jobs.append(axes[0].sup.submit(axes[0].drive_name, Command.move(
+            self._group_job(starter, members, seg_t, end_t),
+            f'trajectory segment of {[a.joint for a in axes]} started together',
+            also=tuple(a.drive_name for a in axes[1:]))))
+
+    def _group_job(self, starter: Callable, members: list, seg_t: float,
+                   end_t: float) -> Callable:
+        """One job that starts the rest-to-rest moves of several axes of one bus in one
+        instant (Bus.group_start). As _move_job per axis: each axis's run before ends first,
+        the profile is computed again for the time really left, `_moved_t` per joint; the
+        lead (job start to the starting string on the wire) is the group's, each axis
+        learning its share, so that the bus's moves of one segment cost it (min_segment_s).
+
+        A member the starter left out (`skipped`: a stop or disable of its drive since the
+        job was decided, a refusal, a write without its confirmation) did not get its move:
+        the job fails, naming it, and the run stops its joints and ends aborted, as for a
+        failed segment job. It is not sent again on its own: a stop that came between must
+        stay a stop, and the other joints have already left without it."""
+        clock = self.follower.clock
+
+        def job():
+            for axis, _, _ in members:
+                ready = axis.drive.until_ready_for_move()   # (X-MIND K: its run ends first)
+                if ready is not None:
+                    yield from ready
+            t0 = clock()
+            lead_s = sum(axis.lead_s for axis, _, _ in members)
+            moves = []
+            for axis, move, from_steps in members:
+                runs_t = max(t0 + lead_s, seg_t + move.start_delay_s)
+                v, a = self._retimed(axis, move, from_steps, end_t - runs_t)
+                if math.isinf(a):                # start-stop: the drive ignores the ramp
+                    a = axis.limits.max_acceleration_steps_s2
+                moves.append((axis.drive, int(round(move.target_steps)), Motion(v, a, a)))
+            result = yield from starter(moves)
+            now = clock()
+            skipped = getattr(result, 'skipped', {})
+            for axis, _, _ in members:
+                if axis.drive_name not in skipped:
+                    self._moved_t[axis.joint] = now
+            sent = getattr(result, 'sent_t', None)
+            lead = (sent if sent is not None and sent >= t0 else now) - t0
+            share = min(lead, LEAD_MAX_S) / len(members)
+            for axis, _, _ in members:
+                axis.lead_s += LEAD_SMOOTHING * (share - axis.lead_s)
+            if skipped:
+                names = {axis.drive_name: axis.joint for axis, _, _ in members}
+                raise DriveError('; '.join(f'{names.get(name, name)}: its move did not go '
+                                           f'out ({why})' for name, why in skipped.items()))
+            return result
+        return job
 
     def _standing(self) -> bool:
         """The run is over: no job of it is left (a move that has not gone out yet; a stream

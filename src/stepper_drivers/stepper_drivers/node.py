@@ -275,7 +275,7 @@ class DriveNode(Node):
                 drives[dcfg.name] = drive
             sup = BusSupervisor(
                 bus, drives, self.bus_params, on_cycle=self.publishing.publish_states,
-                on_connected=self._check_identity, on_event=self._on_event,
+                on_connected=self._on_connected, on_event=self._on_event,
                 # managed: enabled at on_activate, not when the bus is configured
                 auto_enable=[] if self.managed else
                 [d.name for d in dcfgs if d.params.get('auto_enable')],
@@ -351,6 +351,25 @@ class DriveNode(Node):
             self.publishing.publish_states(sup)
         finally:
             self.on_fatal(f'{sup.name}: {why}')
+
+    def _on_connected(self, sup: BusSupervisor, slot: Slot) -> str:
+        """Owner thread, a drive connected: its identity checked, then what its bus must check
+        before it starts drives together (Bus.group_start_check: the X-MIND K line probe of
+        broadcast_start), queued once as a MAINTENANCE job of this drive; its result is logged.
+        Until it ran, group starts fall back to per-drive starts."""
+        why = self._check_identity(sup, slot)
+        check = None if why else sup.bus.group_start_check()
+        if check is not None:
+            def probed(fut: concurrent.futures.Future, name: str = slot.name) -> None:
+                exc = fut.exception()
+                self._on_event('warning' if exc is not None else 'info', name,
+                               f'line probe failed, no group starts: {exc}' if exc is not None
+                               else fut.result())
+            self._on_event('info', slot.name, 'line probe for drives of no node '
+                           '(broadcast_start) queued')
+            sup.submit(slot.name, Command.maintenance(check, 'line probe')) \
+                .add_done_callback(probed)
+        return why
 
     def _check_identity(self, sup: BusSupervisor, slot: Slot) -> str:
         """Two configured drives that answer with one identity are one device reached twice

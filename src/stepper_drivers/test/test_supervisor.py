@@ -1166,6 +1166,43 @@ def test_an_answer_awaits_a_snapshot_read_after_its_command_not_one_in_flight_be
         sup.shutdown(0.5)
 
 
+def test_a_job_that_also_writes_another_drive_counts_as_its_write_too():
+    """A job queued under axis1 that also writes axis2 (a group start, Command.also) runs
+    while a poll of axis2 is under way (its read went out before the write). A waiter for
+    axis2's next snapshot registered at the job's end is not answered by that poll but by the
+    next one, which shows the write: the job's start and end count as writes of axis2 too."""
+    sup, line, d = make(kinds={'axis1': ScriptDrive, 'axis2': SlowReadDrive})
+    slot = sup.slots['axis2']
+    try:
+        wait_for(lambda: slot.polls >= 2, 3.0, 'polled')
+        with pytest.raises(ValueError, match=r"also \['axis9'\]: not other drives"):
+            sup.submit('axis1', Command.move(lambda: None, 'x', also=('axis9',)))
+        seq = slot.write_seq
+        answers, futs = [], []
+
+        def answered(ok):                      # owner thread, once the waiter is answered
+            answers.append((ok, slot.state, slot.state.position_steps))
+
+        def group_ended(fut):                  # owner thread, at the group job's end
+            assert slot.poll_steps is not None, 'the poll of axis2 no longer under way'
+            sup.wait_poll('axis2', 1.0, answered)
+
+        def group_start():
+            fut = sup.submit('axis1', Command.move(lambda: d['axis2'].move_to(500, None),
+                                                   'group start', also=('axis2',)))
+            fut.add_done_callback(group_ended)
+            futs.append(fut)
+        d['axis2'].on_read = group_start        # during axis2's read: its poll goes on after
+        wait_for(lambda: answers, 2.0, 'the waiter answered')
+        assert result(futs[0]) is None
+        assert slot.write_seq >= seq + 2        # the group job's start and end
+        ok, state, position = answers[0]
+        assert ok and position == 500, f'answered by a snapshot read before the job: {position}'
+        assert state.after_write >= seq + 2
+    finally:
+        sup.shutdown(0.5)
+
+
 def test_a_snapshot_a_drive_vouches_for_after_a_command_carries_the_count_of_that_vouch():
     """A quiet cycle counts a drive polled by its word that the last poll still holds: that
     snapshot is stamped with the write count in force at the vouching, after the command."""

@@ -12,10 +12,14 @@ from __future__ import annotations
 
 import os
 import pathlib
+import select
 import signal
 import socket
 import subprocess
+import termios
 import threading
+import time
+import tty
 
 from stepper_drivers.cli.ros_client import wait_for  # noqa: F401 - one definition, re-exported
 
@@ -188,3 +192,34 @@ class SyncListener:
 def max_gap(stamps: list[float]) -> float:
     """The largest time between two consecutive stamps."""
     return max(b - a for a, b in zip(stamps, stamps[1:]))
+
+
+class RawLine:
+    """The host side of a simulated serial line, with no driver code and no pyserial: the
+    symlinked pty opened raw, strings written with a CR, answers read up to their CR."""
+
+    def __init__(self, path: str):
+        self.fd = os.open(path, os.O_RDWR | os.O_NOCTTY)
+        tty.setraw(self.fd)
+        termios.tcflush(self.fd, termios.TCIOFLUSH)
+
+    def send(self, text: str) -> None:
+        os.write(self.fd, text.encode('ascii') + b'\r')
+
+    def ask(self, text: str, timeout_s: float = 0.3) -> str | None:
+        """Send text + CR; the answer (CR stripped) or None when nothing comes in timeout_s."""
+        self.send(text)
+        return self.read(timeout_s)
+
+    def read(self, timeout_s: float = 0.3) -> str | None:
+        buf = b''
+        deadline = time.monotonic() + timeout_s
+        while not buf.endswith(b'\r'):
+            left = deadline - time.monotonic()
+            if left <= 0 or not select.select([self.fd], [], [], left)[0]:
+                return None if not buf else buf.decode()
+            buf += os.read(self.fd, 256)
+        return buf[:-1].decode('ascii')
+
+    def close(self) -> None:
+        os.close(self.fd)

@@ -79,7 +79,10 @@ class XmindKDriveSim:
         self.eeprom_cell_writes = 0
         self.eeprom_preset_writes = 0
         self._load()
-        self.counters = {'strings': 0, 'answers': 0, 'N': 0, 'ignored_busy': 0}
+        self.counters = {'strings': 0, 'answers': 0, 'N': 0, 'ignored_busy': 0, 'broadcasts': 0}
+        # (time, instruction code) of every run the axis began: the truth a test compares
+        # with what the host believes (when a broadcast started two drives, for one)
+        self.motion_starts: list[tuple[float, int]] = []
         self.power_on()
 
     # ----------------------------------------------------------------------- EEPROM and power
@@ -209,6 +212,8 @@ class XmindKDriveSim:
             return None if broadcast else xk.encode_answer(xk.Frame(self.address, 'N'))
         if broadcast and frame.code not in xk.BROADCAST_CODES:
             return None                     # not allowed as broadcast: not executed either
+        if broadcast:
+            self.counters['broadcasts'] += 1    # executed, never answered (§2.2.1, §4.4.3)
         reply_address = self.address        # WS,AD answers with the old address (§4.2.2.1)
         answer = self._execute_string(frame, now)
         self.update(now)
@@ -436,10 +441,12 @@ class XmindKDriveSim:
                 return False
             self.index_target = target
             m.move_to(target, f, a, a)
+            self.motion_starts.append((m.time_s, c))
             self.phase = 'index'
             return True
         sign = 1 if instr.get('direction') == '+' else -1
         m.run_velocity(sign * f, a, a)
+        self.motion_starts.append((m.time_s, c))
         self.phase = 'dstop' if c == 5 else 'free'
         self.dstop_armed = math.isinf(a)
         return True
@@ -660,6 +667,8 @@ class XmindKLine(PtyLine):
         if self.tap:
             self.tap('rx', frame, now)
         self.counters['strings'] += 1
+        if frame[:2] == b'%02d' % xk.BROADCAST:     # one line per broadcast string (the tests)
+            logger.info('broadcast %s', frame.decode('ascii', errors='replace').rstrip('\r'))
         if not self.line_timing:
             self._deliver(frame, now, now)
             return
@@ -669,10 +678,17 @@ class XmindKLine(PtyLine):
         turnaround = xk.turnaround_s(frame[2:4].decode('ascii', errors='replace'))
         with self.lock:
             rds = {d.name: float(d.presets['RD']) / 1000.0 for d in self.drives}
+        # Every drive hears the string end at end_rx and acts its turnaround plus its RD later
+        # (§3, §4.2.2.5 Note): drives with the same delay act in the same instant, which a
+        # broadcast (99, §2.2.1) makes visible: they are served together at that instant.
+        by_delay: dict[float, list[XmindKDriveSim]] = {}
         for d in self.drives:
             rd = rds[d.name]
             delay = turnaround + rd if self.rd_mode == 'add' else max(turnaround, rd)
-            self._later(end_rx + delay, lambda d=d: self._deliver(frame, end_rx, None, [d]))
+            by_delay.setdefault(delay, []).append(d)
+        for delay, drives in by_delay.items():
+            t = end_rx + delay
+            self._later(t, lambda t=t, drives=drives: self._deliver(frame, end_rx, t, drives))
 
     def _deliver(self, frame: bytes, end_rx: float, now: float | None,
                  drives: Sequence[XmindKDriveSim] | None = None) -> None:

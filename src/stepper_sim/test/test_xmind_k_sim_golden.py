@@ -5,43 +5,13 @@ driver code), bytes in and bytes out. Each case gives the host strings (the manu
 the canonical wire form) and the exact answer, or None for silence.
 """
 
-import os
-import select
-import termios
 import time
-import tty
 
 import pytest
+from stepper_sim.harness import RawLine
 from stepper_sim.xmind_k_sim import XmindKLine, XmindKDriveSim
 
 ADDRESSES = (0, 1, 2, 3, 5, 6, 7, 8, 9, 11, 12, 13, 14, 15, 23)
-
-
-class RawClient:
-    """The host side of the line: open the symlinked pty, write a string, read one answer."""
-
-    def __init__(self, path):
-        self.fd = os.open(path, os.O_RDWR | os.O_NOCTTY)
-        tty.setraw(self.fd)
-        termios.tcflush(self.fd, termios.TCIOFLUSH)
-
-    def ask(self, text, timeout_s=0.3):
-        """Send text + CR; the answer (CR stripped) or None when nothing comes."""
-        os.write(self.fd, text.encode('ascii') + b'\r')
-        return self.read(timeout_s)
-
-    def read(self, timeout_s=0.3):
-        buf = b''
-        deadline = time.monotonic() + timeout_s
-        while not buf.endswith(b'\r'):
-            left = deadline - time.monotonic()
-            if left <= 0 or not select.select([self.fd], [], [], left)[0]:
-                return None if not buf else buf.decode()
-            buf += os.read(self.fd, 256)
-        return buf[:-1].decode('ascii')
-
-    def close(self):
-        os.close(self.fd)
 
 
 @pytest.fixture
@@ -55,7 +25,7 @@ def line(tmp_path):
 
 @pytest.fixture
 def host(line):
-    client = RawClient(line.link_path)
+    client = RawLine(line.link_path)
     yield client
     client.close()
 
@@ -282,7 +252,7 @@ def test_line_timing_matches_the_manual_arithmetic(tmp_path, case, request_, ans
     drives = [XmindKDriveSim(f'd{a:02d}', a, factory={'RD': 0}) for a in (0, 8)]
     line = XmindKLine(drives, str(tmp_path / 'tty'), line_timing=True)
     line.start()
-    host = RawClient(line.link_path)
+    host = RawLine(line.link_path)
     try:
         for text in setup:
             assert host.ask(text) == f'{text[:2]}Y'
@@ -304,7 +274,7 @@ def test_answer_delay_rd_adds_to_the_turnaround(tmp_path):
     drives = [XmindKDriveSim('d03', 3, factory={'RD': 98})]       # C5: 98 ms later
     line = XmindKLine(drives, str(tmp_path / 'tty'), line_timing=True)
     line.start()
-    host = RawClient(line.link_path)
+    host = RawLine(line.link_path)
     try:
         t0 = time.monotonic()
         assert host.ask('03QS,RD') == '03QS,RD,98'

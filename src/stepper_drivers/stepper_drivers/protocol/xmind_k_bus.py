@@ -9,6 +9,7 @@ drive is silent). The drive logic (what to send when) is `vendors/xmind_k.py`. N
 from __future__ import annotations
 
 import logging
+import time
 from typing import Any, Mapping
 
 from .. import drive
@@ -50,8 +51,16 @@ class XmindKBus(drive.Bus):
         self.garbled = 0
         self.broadcasts = 0
         self.failed_in_a_row = 0
+        # Group starts by broadcast (vendors/xmind_k.py, start_together): a 99PS is executed by
+        # every X-MIND K on the line (§2.2.1, §4.2.5), so it needs the user's word that the line
+        # carries only this node's drives (bus parameter broadcast_start, false when not given),
+        # and a probe of the other addresses that none answered.
+        self.broadcast_start = bool(params.get('broadcast_start', False))
+        self.line_probe: frozenset[int] | None = None   # addresses that answered a full probe
+        self.foreign: set[int] = set()      # addresses not ours that ever answered since open
 
     def open(self) -> None:
+        self.line_probe, self.foreign = None, set()     # a line opened again: probe it again
         try:
             self.line.open()
         except LineError as e:
@@ -74,13 +83,17 @@ class XmindKBus(drive.Bus):
         return {**super().counters(), 'silences': self.silences, 'garbled': self.garbled,
                 'broadcasts': self.broadcasts}
 
-    def broadcast(self, frame: xk.Frame) -> None:
-        """A 99 string: executed by every drive, answered by none (§2.2.1)."""
+    def broadcast(self, frame: xk.Frame) -> float:
+        """A 99 string: executed by every drive, answered by none (§2.2.1). Returns when its
+        last character is on the wire (time.monotonic(), estimated from the character time):
+        every drive acts from then on, after the turnaround and its RD (§3, §4.2.2.5)."""
+        raw = xk.encode_request(frame)
         try:
-            self.line.send(xk.encode_request(frame))
+            self.line.send(raw)
         except LineError as e:
             raise LinkError(str(e)) from None
         self.broadcasts += 1
+        return time.monotonic() + len(raw) * self.char_s
 
     @property
     def last_try_slack_s(self) -> float:

@@ -49,13 +49,14 @@ class Job:
     # points that lasts seconds: the drive's state must stay fresh meanwhile)
     polled: bool = False
     taken: threading.Event | None = None   # set when the owner takes it (see submit's hand_over)
+    also: tuple[str, ...] = ()  # other drives it writes (Command.also): their writes counted too
 
     @classmethod
     def of(cls, drive: str, command: Command, enqueued_t: float, arm_seq: int = 0) -> 'Job':
         """The job of `command` for `drive`, with a future of its own."""
         return cls(drive, command.kind, command.fn, command.label, concurrent.futures.Future(),
                    command.topic, command.disarms, command.motion, enqueued_t, arm_seq,
-                   command.polled)
+                   command.polled, also=command.also)
 
     def preempted_by(self, urgent: 'Job') -> bool:
         """A stop drops motion; a disable (an URGENT job that is not motion itself) drops

@@ -145,6 +145,9 @@ class BusSupervisor(RunningPart, PollingPart, LinkPart):
         flight) is not waited for: on a serial line that would hold the executor 20-30 ms."""
         job = Job.of(drive, command, self.clock())
         fut = job.future
+        unknown = [n for n in job.also if n not in self.slots or n == drive]
+        if unknown:      # (in the caller's thread: the owner would fail on them)
+            raise ValueError(f'{job.label}: also {unknown}: not other drives of this bus')
         with self._cv:
             slot = self.slots[drive]
             job.arm_seq = slot.arm_seq

@@ -8,7 +8,9 @@ suspended until the urgent job ended (`_finish`), and goes on at its wake time.
 
 Snapshot provenance: the owner counts the writes to each drive (`Slot.write_seq`: +1 when a
 job of the drive starts, +1 when it ends); a job's future carries the count at its end as
-`after_write`.
+`after_write`. A job that also writes other drives (Command.also: a group start queued under
+one drive) counts its start and end as writes of each of them too, so a snapshot of another
+drive read before the job does not answer for after it.
 """
 
 from __future__ import annotations
@@ -45,13 +47,18 @@ class RunningPart:
                 f'{job.label}: drive {slot.name} is DISCONNECTED ({self.bus.description})'))
             return
         slot.active = job
-        self._wrote(slot)
+        self._wrote(slot, job)
         self._advance(slot, job.fn)
 
-    def _wrote(self, slot: Slot) -> None:
-        """A job of slot's drive starts or ends: what is polled from now on follows it."""
+    def _wrote(self, slot: Slot, job: Job | None = None) -> None:
+        """A job of slot's drive starts or ends: what is polled from now on follows it (and
+        for every drive the job also writes, `job.also`)."""
         slot.write_seq += 1
         self._writes += 1
+        for name in job.also if job is not None else ():
+            other = self.slots[name]
+            other.write_seq += 1
+            self._writes += 1
 
     def _step_active(self, slot: Slot) -> None:
         steps = slot.active_steps
@@ -95,7 +102,7 @@ class RunningPart:
     def _finish(self, slot: Slot) -> None:
         """slot.active ended: its future gets the drive's write count at its end (before its
         result), and the job an urgent one suspended goes on (at its wake time)."""
-        self._wrote(slot)
+        self._wrote(slot, slot.active)
         if slot.active is not None:
             slot.active.future.after_write = slot.write_seq
         if slot.suspended:

@@ -17,6 +17,10 @@ How the common contract maps onto the drive (docs/xmind_k.md has the full table)
   fault reset does not exist (RefusedError); every preset is already stored;
 - every operation of more than one string is step-wise (drive.py): 0.0 is yielded between
   strings, waits are yields; `stop()` is one string. A 9600 baud string takes 20-50 ms.
+- the drives of one line start together with `start_together` (a job for the bus owner): each
+  run stored, then one broadcast `99PS` where every drive that hears it is known to hold what
+  was stored for it (`broadcast_refusal`), else one `PS` per drive; `probe_line` asks the
+  addresses no drive of the node has.
 
 One file: the drive is silent while it runs a program (§3), so read_state, stop, a velocity
 change and homing all work on the same running Job, its Estimate and the epoch.
@@ -230,8 +234,13 @@ class XmindKDrive(drive.Drive):
         self.last_target: int | None = None
         self.next_status_s = 0.0
         self.epoch = 0                         # stops and motion commands so far (see above)
+        self.stops = 0                         # stops and disables so far (GroupMove.stops)
         self.connects = 0                      # successful connects of this object
         self.may_end_at_zero = False           # a job lost with the link could end at 0
+        # RAM cells whose content the drive confirmed (Y to WN) since it connected: what a
+        # stored instruction execution (PS, and its broadcast) would run; a cell not here is
+        # unknown (never written, a WN without its Y, a power cycle: §4.1 RAM)
+        self.cells: dict[int, xk.Instruction] = {}
         bus.addresses[name] = self.number     # (the node also builds drives only to check)
 
     min_velocity_steps_s = 1.0            # Table 4: 0001..4800 Hz
@@ -303,6 +312,14 @@ class XmindKDrive(drive.Drive):
         if answer.code != 'Y':
             raise DriveError(f'drive {self.number:02d} answered {answer} to {code}')
 
+    def _store(self, cell: int, instr: xk.Instruction) -> None:
+        """WN: `instr` into `cell`. The cell counts as known (`cells`) only once the drive
+        confirmed it with Y (§4.4.1); while the string is out, and after N, silence or a garbled
+        answer (a lost reply may have reached the drive), its content is unknown."""
+        self.cells.pop(cell, None)
+        self._command('WN', cell, instr)
+        self.cells[cell] = instr
+
     def _launch(self, cell: int, make_job: Callable[[float], Job]) -> None:
         """PS: never repeated (a lost Y would make the repeat land on a busy drive), so its one
         try waits as long as the last repeat of another string would: a Y late by a hiccup of
@@ -342,6 +359,7 @@ class XmindKDrive(drive.Drive):
         self.job, self.pending = None, None
         self.epoch += 1
         self.rd_ms = None
+        self.cells.clear()                   # RAM cells: unknown after a link loss (§4.1)
         nn = f'{self.number:02d}'
         rs_form = f'{nn}QS,RS,<D0..D3|B0..B3>'
         answer = self._identify('QS', 'RS', expected=rs_form, silence_ok=True)
@@ -435,6 +453,7 @@ class XmindKDrive(drive.Drive):
                        'ON by default (§4.2.3); enable and home again', self.name, self.number,
                        why)
         self.enabled, self.homed, self.homing = False, False, HomingState.IDLE
+        self.cells.clear()                   # RAM cells 228-230 lost with the power (§4.1)
         self.power_alarm = f'power cycle detected ({why}): position reference lost, home again'
 
     def _stop_unknown_program(self) -> drive.Steps[None]:
@@ -620,6 +639,7 @@ class XmindKDrive(drive.Drive):
 
     def disable(self) -> drive.Steps[None]:
         self.epoch += 1
+        self.stops += 1
         self.pending = None
         self.enabled = False                 # refuse motion from now, whatever comes of CN
         if self.job is not None:             # CN is not heard by a busy drive (§3)
@@ -753,7 +773,7 @@ class XmindKDrive(drive.Drive):
             return
         chunk = max(-xk.STEPS_MAX, min(xk.STEPS_MAX, delta))
         instr, f, a = self.run_instruction('move', motion.velocity_steps_s, motion, chunk)
-        self._command('WN', MOVE_CELL, instr)
+        self._store(MOVE_CELL, instr)
         yield 0.0
         if self._superseded(epoch):
             return
@@ -800,7 +820,7 @@ class XmindKDrive(drive.Drive):
                 return
         self._require_enabled('velocity')
         instr, f, a = self.run_instruction('velocity', v, motion)
-        self._command('WN', RUN_CELL, instr)
+        self._store(RUN_CELL, instr)
         yield 0.0
         if self._superseded(epoch):
             return
@@ -826,6 +846,7 @@ class XmindKDrive(drive.Drive):
     def stop(self, quick: bool = False) -> None:
         """One string at most (EE or ES); cancels a start between its steps (epoch)."""
         self.epoch += 1
+        self.stops += 1
         self.pending = None
         self.last_target = None              # at rest after a stop = target reached (CiA 402)
         if self.job is not None:
@@ -875,11 +896,11 @@ class XmindKDrive(drive.Drive):
             self.position_steps = offset
             self._homed()
             return f'{HOMING_METHODS[60]}' + (f', then SA {offset}' if offset else '')
-        self._command('WN', MOVE_CELL, search)        # §7.6: zero search, then counter reset
+        self._store(MOVE_CELL, search)        # §7.6: zero search, then counter reset
         yield 0.0
         if self._superseded(epoch):
             raise DriveError('home: cut short by a stop or a newer command')
-        self._command('WN', RUN_CELL, reset)
+        self._store(RUN_CELL, reset)
         yield 0.0
         if self._superseded(epoch):
             raise DriveError('home: cut short by a stop or a newer command')
@@ -990,6 +1011,8 @@ class XmindKDrive(drive.Drive):
             raise DriveError(f'{text!r}: {e} (the drive would answer N)') from None
         if self.job is not None and code not in xk.BUSY_CODES:
             raise DriveError(f'drive {self.number:02d} is busy: only EE and ES are heard (§3)')
+        if code == 'WN':
+            self.cells.pop(frame.args[0], None)     # written behind the node's back: unknown
         if code == 'PS':                     # a stored program: busy until it answers again
             self.epoch += 1
             self.last_target = None
@@ -1010,9 +1033,317 @@ class XmindKDrive(drive.Drive):
             self.position_steps = frame.args[0] if code == 'SA' else 0
 
 
+# ------------------------------------------------------------------------- group start
+# The joints of one trajectory on one line start a segment in the same instant: each drive's run
+# is stored in its cell MOVE_CELL (WN, each confirmed by Y), then one broadcast stored
+# instruction execution 99PS,228 starts them all (§4.2.5 "Broadcast transmission is allowed",
+# §2.2.1 "recognized and executed by all X-MIND K series drives connected to serial line",
+# no answer: §4.4.3). The broadcast reaches every X-MIND K on the line, driven by this node or
+# not, and runs whatever its cell 228 holds: the manual says nothing of an empty cell, of a drive
+# with its current off (CN) or blocked by a protection, and cells 228-230 are RAM of unknown
+# content after power-on (§4.1). So it is sent only when every drive that can hear it is known
+# to hold exactly what this start stored (`broadcast_refusal`); otherwise each drive gets its
+# own PS, one after the other, as a single move does.
+NULL_INSTRUCTION = xk.Instruction.make(0)      # §4.1.13 null: a drive that stays where it is
+PROBE_ADDRESSES = range(xk.ADDRESS_MIN, xk.ADDRESS_MAX + 1)
+
+
+@dataclasses.dataclass(frozen=True)
+class GroupMove:
+    """One drive's part of a group start: where to and with which profile (as move_to).
+    `stops`: the drive's `stops` when the caller decided on this move (before it queued the
+    job): a stop or disable of the drive since leaves it out. The job is queued under one drive
+    of the line, so another drive's stop does not drop it as it drops that drive's own jobs."""
+
+    drive: 'XmindKDrive'
+    target_steps: int
+    motion: Motion
+    stops: int | None = None
+
+
+@dataclasses.dataclass
+class GroupStart:
+    """What start_together did. `broadcast`: one 99PS started every drive of `started`;
+    otherwise `why_not` says what the node could not make sure of, and each got its own PS.
+    `skipped`: drive name -> why it was not started (a stop or a newer command between the
+    steps, not enabled, in fault, a WN without its Y); `sent_t`: when the string that started
+    the (last) drive was on the wire (time.monotonic()); `skew_s`: how far apart the started
+    drives begin by their answer delays RD (§4.2.2.5: RD delays the execution too)."""
+
+    broadcast: bool
+    why_not: str
+    started: tuple[str, ...]
+    skipped: dict[str, str]
+    sent_t: float | None
+    skew_s: float = 0.0
+
+
+def probe_line(bus: XmindKBus, rd_ms: float = xk.RD_MAX_MS, slack_s: float | None = None,
+               addresses: Any = None) -> drive.Steps[frozenset[int]]:
+    """Step-wise: ask every address 00..47 that no drive of this node has (QS,AD, §4.3.2, one
+    string each, nothing that moves or writes) and return those that answered. A drive's
+    answer delay RD is unknown (§4.2.2.5, up to 255 ms): each waits for that by default. Only a
+    probe of all of 00..47 counts for broadcasts (bus.line_probe); any answer, full probe or
+    not, blocks them until the bus is opened again (bus.foreign). A busy or switched-off drive
+    is silent (§4.4.3): the probe cannot prove the line empty, which is why broadcasts also
+    need the user's broadcast_start."""
+    ours = set(bus.addresses.values())
+    full = addresses is None
+    todo = [a for a in (PROBE_ADDRESSES if full else addresses) if a not in ours]
+    heard = set()
+    for i, address in enumerate(todo):
+        if i:
+            yield 0.0
+        try:
+            answer = bus.request(xk.Frame(address, 'QS', ('AD',)), rd_ms, tries=1,
+                                 retry_silence=False, slack_s=slack_s)
+        except GarbledAnswer:
+            answer = True                      # something answered at that address
+        if answer is not None:
+            heard.add(address)
+            bus.foreign.add(address)
+            logger.warning('%s: address %02d answered, no drive of this node has it: no '
+                           'broadcast starts on this line', bus.url, address)
+    if full:
+        bus.line_probe = frozenset(heard)
+    return frozenset(heard)
+
+
+def line_refusal(bus: XmindKBus, names: Any) -> str:
+    """What stops a broadcast on `bus` for a start of the drives `names`, from what is known
+    without the wire ('' = nothing): the user's word, the probe, and that every drive this node
+    has on the line takes part (a drive of the node left out would run its cell 228 again: its
+    last move, relative, §5.1)."""
+    if not bus.broadcast_start:
+        return ('broadcast_start is false (the line may carry X-MIND K drives this node does not '
+                'drive, and a broadcast starts them all, §2.2.1)')
+    if bus.foreign:
+        return (f'address(es) {", ".join(f"{a:02d}" for a in sorted(bus.foreign))} answered '
+                'on this line and no drive of this node has them')
+    if bus.line_probe is None:
+        return 'the line has not been probed for other drives since it was opened (probe_line)'
+    left_out = sorted(set(bus.addresses) - set(names))
+    if left_out:
+        return (f'drive(s) {", ".join(left_out)} of this line take no part in the start: a '
+                'broadcast would run their cell 228 too')
+    return ''
+
+
+def broadcast_refusal(bus: XmindKBus, stored: Mapping[str, xk.Instruction],
+                      epochs: Mapping[str, int]) -> str:
+    """Checked in the step that sends the broadcast (nothing else reaches the line between):
+    line_refusal, and every drive of the line is one of `stored` (name -> the instruction it
+    confirmed in MOVE_CELL during this start), connected to this node, idle, enabled, not in
+    fault, nothing commanded to it since the start began (`epochs`), and its cell still the
+    one confirmed. '' when the broadcast can go."""
+    why = line_refusal(bus, stored)
+    if why:
+        return why
+    for name in bus.addresses:
+        d = bus.drives.get(name)
+        if d is None:
+            return f'drive {name} never connected: what it holds is unknown'
+        if d.epoch != epochs.get(name) or d.job is not None or d.pending is not None:
+            return f'drive {name}: a stop or another command came during the start'
+        if not d.enabled or d.fault:
+            return f'drive {name} is not enabled or in fault'
+        if d.cells.get(MOVE_CELL) != stored[name]:
+            return f'drive {name}: cell {MOVE_CELL} is not confirmed to hold this start'
+    return ''
+
+
+def start_together(moves: Any) -> drive.Steps[GroupStart]:
+    """Step-wise, for the bus owner (one job): start the GroupMoves, all drives of one line, in
+    the same instant where that can be made safe, else one after the other.
+
+    1. As move_to would refuse (no wire): a target outside the counter, a profile outside the
+       tables, a drive not enabled or in fault. A drive whose index run ends within
+       QUEUE_BEHIND_S is waited for; one still busy then goes the way of move_to (stop, restart)
+       and takes no part.
+    2. Per drive: FA and the power-cycle flag on the wire (as every start), then WN 228 with its
+       run, or the null instruction where it stays put (only when a broadcast is possible: a
+       drive left with its last run in 228 would run it again).
+    3. One step: broadcast_refusal; '' -> the jobs are recorded, then 99PS,228 (no answer, so
+       it is taken as heard: a lost broadcast shows as a drive that did not move). Else PS,228
+       to each drive whose run is confirmed, as a single move starts (a lost Y is taken as
+       started). A drive that a stop or another command reached between the steps is not
+       started; nor one whose WN got no Y (its cell is unknown)."""
+    moves = list(moves)
+    if not moves:
+        return GroupStart(False, 'no moves', (), {}, None)
+    bus = moves[0].drive.bus
+    if any(m.drive.bus is not bus for m in moves) or \
+            len({m.drive.name for m in moves}) != len(moves):
+        raise DriveError('start_together: one move per drive, all drives on one line')
+    skipped: dict[str, str] = {}
+    stops = {m.drive.name: m.drive.stops if m.stops is None else m.stops for m in moves}
+
+    def leave_out_stopped(moves: list) -> list:
+        for m in moves:
+            if m.drive.stops != stops[m.drive.name]:
+                skipped[m.drive.name] = 'stopped or disabled after this start was decided'
+        return [m for m in moves if m.drive.name not in skipped]
+
+    moves = leave_out_stopped(moves)
+    targets = {}
+    for m in moves:                                      # 1. refusals, no wire
+        d = m.drive
+        targets[d.name] = d._check_target(m.target_steps)
+        d.run_instruction('move', m.motion.velocity_steps_s, m.motion, 1)
+        d._require_enabled('move')
+    for m in moves:
+        ready = m.drive.until_ready_for_move()
+        if ready is not None:
+            yield from ready
+    moves = leave_out_stopped(moves)                     # a stop during the waits
+    group = [m for m in moves if m.drive.job is None and m.drive.pending is None]
+    late = [m for m in moves if m not in group]
+    epochs = {}
+    for m in group:
+        d = m.drive
+        d.epoch += 1                                     # a motion command, as move_to
+        d.last_target = targets[d.name]
+        epochs[d.name] = d.epoch
+    # a broadcast is worth it for two drives that move or more; else no null runs are written
+    movers = [m for m in group if targets[m.drive.name] != m.drive.position_steps]
+    possible = len(movers) >= 2 and not line_refusal(bus, [m.drive.name for m in group])
+
+    def live(d: XmindKDrive) -> bool:
+        return d.epoch == epochs[d.name] and d.job is None
+
+    stored: dict[str, xk.Instruction] = {}
+    plans = {}
+    for i, m in enumerate(group):                        # 2. status and WN, step by step
+        d = m.drive
+        if i:
+            yield 0.0
+        try:
+            yield from d._read_status()
+            yield 0.0
+            if not live(d):
+                skipped[d.name] = 'a stop or a newer command came first'
+                continue
+            d._require_enabled('move')
+            start = d.position_steps
+            chunk = max(-xk.STEPS_MAX, min(xk.STEPS_MAX, targets[d.name] - start))
+            if chunk == 0:
+                if possible:
+                    d._store(MOVE_CELL, NULL_INSTRUCTION)
+                    stored[d.name] = NULL_INSTRUCTION
+                continue
+            instr, f, a = d.run_instruction('move', m.motion.velocity_steps_s, m.motion, chunk)
+            d._store(MOVE_CELL, instr)
+        except (DriveError, LinkError) as e:             # this drive only; its poll sees a loss
+            skipped[d.name] = str(e)
+            continue
+        stored[d.name] = instr
+        plans[d.name] = (d, instr, start, chunk, f, a, targets[d.name], m.motion)
+    yield 0.0
+    if len(plans) < 2:
+        why_not = 'fewer than two drives move' + ''.join(
+            f'; {name} not started: {why}' for name, why in skipped.items())
+    elif not possible:
+        why_not = line_refusal(bus, [m.drive.name for m in group]) or \
+            'fewer than two drives move'
+    else:
+        why_not = broadcast_refusal(bus, stored, epochs)
+
+    def job_for(d, instr, start, chunk, f, a, target, motion):
+        def job(t: float) -> Job:
+            estimate = Estimate.index(t, start, chunk, f, a)
+            return Job('move', instr, estimate, a, estimate.end_s, target_steps=start + chunk,
+                       final_target_steps=target if start + chunk != target else None,
+                       motion=motion)
+        return job
+
+    rd_s = [(d.rd_ms or 0) / 1000.0 for d, *_ in plans.values()]
+    skew_s = max(rd_s) - min(rd_s) if rd_s else 0.0
+    started: list[str] = []
+    sent_t = None
+    if not why_not:                                      # 3. the broadcast, same step
+        t = time.monotonic()
+        for d, *plan in plans.values():
+            d.job = job_for(d, *plan)(t)                 # recorded before it leaves (§3)
+        sent_t = bus.broadcast(xk.Frame(xk.BROADCAST, 'PS', (MOVE_CELL,)))
+        for name, (d, *plan) in plans.items():
+            d.job = job_for(d, *plan)(sent_t + xk.TURNAROUND_S + (d.rd_ms or 0) / 1000.0)
+            d.motion_sent_t = sent_t
+            started.append(name)
+    else:
+        logger.debug('%s: per-drive starts: %s', bus.url, why_not)
+        for i, (name, (d, *plan)) in enumerate(plans.items()):
+            if i:
+                yield 0.0
+            if not live(d) or d.fault or not d.enabled or d.cells.get(MOVE_CELL) != plan[0]:
+                skipped[name] = 'a stop or a newer command came first, or it is not enabled'
+                continue
+            try:
+                d._launch(MOVE_CELL, job_for(d, *plan))
+            except (DriveError, LinkError) as e:
+                if d.job is None:                        # refused (N)
+                    skipped[name] = str(e)
+                    continue
+                logger.warning('%s: %s', name, e)        # no Y: taken as started (_launch)
+            sent_t = time.monotonic()
+            started.append(name)
+    for m in late:                                       # busy past its end: as move_to
+        yield 0.0
+        result = m.drive.move_to(m.target_steps, m.motion)
+        if drive.is_steps(result):
+            yield from result
+    return GroupStart(not why_not, why_not, tuple(started), skipped, sent_t, skew_s)
+
+
+class XmindKGroupBus(XmindKBus):
+    """The line as the node drives it: XmindKBus (protocol/) with this module's group start
+    (drive.Bus.group_start: start_together, which decides between one broadcast and per-drive
+    starts) and the check it needs (drive.Bus.group_start_check: probe_line, once per opening
+    of the line); both only where broadcast_start is true."""
+
+    def __init__(self, params: Mapping[str, Any]):
+        super().__init__(params)
+        # how long the probe waits for an answer at each address: the largest answer delay RD
+        # of a drive on the line (§4.2.2.5, up to 255 ms; unknown: the largest)
+        self.probe_wait_ms = float(params.get('broadcast_probe_wait_ms', xk.RD_MAX_MS))
+        self.probing = False
+
+    def group_start(self, drives: Any) -> Callable[[Any], drive.Steps[GroupStart]] | None:
+        drives = list(drives)
+        if not self.broadcast_start or len(drives) < 2 or any(
+                not isinstance(d, XmindKDrive) or d.bus is not self for d in drives):
+            return None      # not opted in: each joint its own move job, as without this
+        stops = {d.name: d.stops for d in drives}     # noted before the job queues
+
+        def starter(moves: Any) -> drive.Steps[GroupStart]:
+            return start_together([GroupMove(d, target, motion, stops=stops[d.name])
+                                   for d, target, motion in moves])
+        return starter
+
+    def group_start_check(self) -> Callable[[], drive.Steps[str]] | None:
+        if not self.broadcast_start or self.line_probe is not None or self.probing:
+            return None
+        return self._probe
+
+    def _probe(self) -> drive.Steps[str]:
+        if self.line_probe is not None or self.probing:
+            return 'line probe: done already or under way'
+        self.probing = True
+        try:
+            heard = yield from probe_line(self, rd_ms=self.probe_wait_ms)
+        finally:
+            self.probing = False
+        if heard:
+            return (f'line probe: address(es) {", ".join(f"{a:02d}" for a in sorted(heard))} '
+                    'answered and no drive of this node has them: no broadcast starts on this '
+                    'line, each drive is started with its own PS')
+        return ('line probe: no answer from the addresses no drive of this node has: the '
+                'joints of a trajectory on this line start their segments by one broadcast '
+                '99PS where every check of docs/xmind_k.md holds')
+
+
 # ---------------------------------------------------------------------------------- vendor
 def make_bus(params: Mapping[str, Any]) -> XmindKBus:
-    return XmindKBus(VENDOR.with_defaults(params))
+    return XmindKGroupBus(VENDOR.with_defaults(params))
 
 
 def make_drive(bus: XmindKBus, name: str, params: Mapping[str, Any]) -> XmindKDrive:
@@ -1035,6 +1366,17 @@ VENDOR = drive.Vendor(
         PS('local_echo', False, 'the RS-485 adapter echoes what it sends: read and drop it',
            scope='bus'),
         PS('rs485', False, serial_port.RS485_DESCRIPTION, scope='bus'),
+        PS('broadcast_start', False, 'start the trajectory segments of the drives of this line '
+           'in one instant by the broadcast stored instruction execution 99PS (§2.2.1, '
+           '§4.2.5). A broadcast is executed by EVERY X-MIND K on the line, driven by this node '
+           'or not: true only where the line carries no X-MIND K but the drives of this node. '
+           'The node then probes the other addresses once the line is open and falls back to '
+           'per-drive starts until then, when one answers, or when any check fails '
+           '(docs/xmind_k.md)', scope='bus'),
+        PS('broadcast_probe_wait_ms', 255, 'how long the line probe of broadcast_start waits '
+           'for an answer at each address: the largest answer delay RD of any drive on the '
+           'line (§4.2.2.5; 255 = the largest possible, about 15 s for the probe)',
+           scope='bus', min_value=1, max_value=255),
         PS('address', 0, 'drive address (§2.2.1, WS,AD)', min_value=0, max_value=47),
         PS('resolution', '', 'operation mode preset RS written at connect when it differs '
            "('' = leave as is); must match steps_per_rev", choices=('',) + tuple(xk.RESOLUTIONS)),
