@@ -555,10 +555,7 @@ class Run:
             self._went[axis.joint] = (runs_t, dataclasses.replace(
                 move, velocity_steps_s=v, acceleration_steps_s2=a, deceleration_steps_s2=dec,
                 entry_steps=x, entry_velocity_steps_s=u))
-            self._moved_t[axis.joint] = clock()
-            sent = axis.drive.motion_sent_t
-            lead = (sent if sent is not None and sent >= t0 else clock()) - t0
-            axis.lead_s += LEAD_SMOOTHING * (min(lead, LEAD_MAX_S) - axis.lead_s)
+            self._moved(axis, t0)
             return result
         return job
 
@@ -582,14 +579,19 @@ class Run:
             result = axis.drive.move_to(int(round(move.target_steps)), Motion(v, a, a))
             if is_steps(result):
                 result = yield from result
-            self._moved_t[axis.joint] = clock()
-            # its move's own transactions (checks, writes) before the drive runs, learned: up to
-            # its motion frame where the move goes on after it (a set-point handshake)
-            sent = axis.drive.motion_sent_t
-            lead = (sent if sent is not None and sent >= t0 else clock()) - t0
-            axis.lead_s += LEAD_SMOOTHING * (min(lead, LEAD_MAX_S) - axis.lead_s)
+            self._moved(axis, t0)
             return result
         return job
+
+    def _moved(self, axis: Axis, t0: float) -> None:
+        """(Owner thread, a move job of `axis` that began at t0 ended) Its move went out, and
+        its own transactions (checks, writes) before the drive runs are learned: up to its
+        motion frame where the move goes on after it (a set-point handshake)."""
+        now = self.follower.clock()
+        self._moved_t[axis.joint] = now
+        sent = axis.drive.motion_sent_t
+        lead = (sent if sent is not None and sent >= t0 else now) - t0
+        axis.lead_s += LEAD_SMOOTHING * (min(lead, LEAD_MAX_S) - axis.lead_s)
 
     @staticmethod
     def _retimed(axis: Axis, move, from_steps: float, left_s: float) -> tuple[float, float]:
