@@ -67,8 +67,8 @@ from diagnostic_msgs.msg import DiagnosticArray
 from std_msgs.msg import Float64
 from std_srvs.srv import SetBool
 from stepper_drivers.cli.ros_client import RosClient
-from stepper_sim.harness import CONFIG, Proc, executable, free_port, wait_for
 from stepper_drivers_msgs.msg import DriveStatus
+from stepper_sim.harness import CONFIG, Proc, executable, free_port, wait_for
 import yaml
 
 HELPER = str(pathlib.Path(__file__).resolve().parent / 'bench_cp_relays.py')
@@ -636,6 +636,7 @@ def bare_rate(v: Vendor, target: str, seconds: float) -> float:
         c.close()
     elif v.key == 'rd4':
         import asyncio
+
         from pymodbus.client import AsyncModbusSerialClient
 
         async def run() -> int:

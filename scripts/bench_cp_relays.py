@@ -194,7 +194,7 @@ def run_floor(topic: str) -> None:
 
 # ------------------------------------------------------------------------------ X-PLUS MT
 def run_xsims(ports: int, units: int) -> None:
-    from stepper_sim.xplus_mt_sim import XplusMtDriveConfig, XplusMtSim
+    from stepper_sim.xplus_mt.sim import XplusMtDriveConfig, XplusMtSim
     sims = []
     for p in range(ports):
         # serial numbers differ: the node refuses two drives that answer with one identity
@@ -221,9 +221,10 @@ def ros_publisher(n: int, status_rate_hz: float = 1.0, diagnostics_rate_hz: floa
     nothing changes (rclpy, the node's QoS); values: (position, statusword). The floor of an
     rclpy node that offers the interface at this rate (the CPU goal's reference)."""
     import array
-    import rclpy
+
     from builtin_interfaces.msg import Time
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+    import rclpy
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import JointState
     from stepper_drivers_msgs.msg import DriveStatus
@@ -236,7 +237,7 @@ def ros_publisher(n: int, status_rate_hz: float = 1.0, diagnostics_rate_hz: floa
     diag_pub = node.create_publisher(DiagnosticArray, '/diagnostics', 10)
     names = [f'bench_joint{i}' for i in range(1, n + 1)]
     try:                        # the node's way: CDR bytes published raw (joint_state_cdr.py)
-        from stepper_drivers.joint_state_cdr import JointStateCdr
+        from stepper_drivers.ros.joint_state_cdr import JointStateCdr
         cdr, js = JointStateCdr(names), None
     except ImportError:         # a tree from before it
         cdr, js = None, JointState(name=names)
@@ -335,7 +336,7 @@ def run_driver_xplus(rate_hz: float, units: int, ports: list[int]) -> None:
     once per period (what the node's owner threads do between publishing)."""
     from stepper_drivers.vendors import xplus_mt as xp
     try:
-        from stepper_drivers.drive import complete
+        from stepper_drivers.contract.drive import complete
     except ImportError:                  # a tree from before the step-wise contract
         def complete(result):
             return result
@@ -360,7 +361,7 @@ def run_driver_xplus(rate_hz: float, units: int, ports: list[int]) -> None:
 
 def run_bare_canopen(rate_hz: float, port: int, ids: list[int], ros: bool) -> None:
     import canopen
-    from stepper_drivers.vendors import vector_step_map as vm
+    from stepper_drivers.vendors.vector_step import regmap as vm
     network = canopen.Network()
     network.connect(interface='socketcand', host='127.0.0.1', port=port, channel='can0')
     nodes = []

@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Lika RD4 state-poll benchmark: cycles per second on an emulated 19200 8E1 line vs its limit.
 
-The simulator (stepper_sim.rd4_sim, in a child process, no ROS) emulates the line: a reply comes
+The simulator (stepper_sim.rd4.sim, in a child process, no ROS) emulates the line: a reply comes
 when a real line at the dip-switch baud rate would deliver it (11-bit characters, t3.5 silences).
 The driver side is the real Rd4Drive + ModbusRtuBus doing what the node does every cycle: one
 read_state() per unit (one FC04 of 8 input registers). The theoretical limit for the same frames:
@@ -28,10 +28,10 @@ import sys
 import tempfile
 import time
 
-from stepper_drivers.drive import complete
+from stepper_drivers.contract.drive import complete
 from stepper_drivers.protocol import modbus_rtu as rtu
 from stepper_drivers.vendors import rd4
-from stepper_drivers.vendors import rd4_map as rm
+from stepper_drivers.vendors.rd4 import regmap as rm
 
 BAUD_SWITCH = 0x04                      # §4.4.2: 19200 baud, Even parity (8E1)
 BAUD = rm.BAUD_SWITCH[BAUD_SWITCH][0]
@@ -39,7 +39,7 @@ POLL_REGISTERS = rm.STATE_BLOCK[1]      # what Rd4Drive.read_state() reads per u
 
 
 def run_sim(path: str, units: int, line_timing: bool, conn) -> None:
-    from stepper_sim.rd4_sim import build_line
+    from stepper_sim.rd4.sim import build_line
     line = build_line({'port': path, 'baud_switch': BAUD_SWITCH, 'line_timing': line_timing},
                       {f'axis{i + 1}': {'node_id': i + 1} for i in range(units)})
     line.start()

@@ -72,14 +72,13 @@ from typing import Any
 
 os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
 
-from bench_command_path import (Helper, machine, parse_ascii, parse_rtu, parse_tcp,
-                                reserve_domain)
+from bench_command_path import Helper, machine, parse_ascii, parse_rtu, parse_tcp, reserve_domain
 from bench_trajectory import VENDORS as TRAJ_VENDORS
-from bench_trajectory import enable_all, on_time, quintic, Recorder, transaction_s
+from bench_trajectory import Recorder, enable_all, on_time, quintic, transaction_s
 from stepper_drivers.cli.ros_client import RosClient
-from stepper_drivers.units import UnitConversion
-from stepper_sim.harness import CONFIG, executable, fifo_allowed, free_port, Proc, wait_for
-from stepper_sim.line_timing import char_time_s, t35_s
+from stepper_drivers.contract.units import UnitConversion
+from stepper_sim.core.line_timing import char_time_s, t35_s
+from stepper_sim.harness import CONFIG, Proc, executable, fifo_allowed, free_port, wait_for
 import yaml
 
 FOREIGN_JOINT = 'foreign_joint'       # a joint of another node in the same block

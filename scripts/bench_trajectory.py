@@ -101,18 +101,18 @@ from typing import Any
 
 os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
 
-from bench_command_path import (bare_rate, load_params, machine, reserve_domain,
-                                running)
+from bench_command_path import bare_rate, load_params, machine, reserve_domain, running
 from builtin_interfaces.msg import Duration, Time
 from control_msgs.action import FollowJointTrajectory
 from std_msgs.msg import Float64
 from std_srvs.srv import SetBool
 from stepper_drivers.cli.ros_client import RosClient
+from stepper_drivers.contract.units import UnitConversion
+from stepper_drivers.motion.trajectory import JointLimits, TrajectoryError, build, plan
+
 # the one trapezoid formula of the node (follow.Run.desired_steps uses it); Run itself needs
 # the node's live axes
-from stepper_drivers.trajectory import along as _along
-from stepper_drivers.trajectory import JointLimits, TrajectoryError, build, plan
-from stepper_drivers.units import UnitConversion
+from stepper_drivers.motion.trajectory import along as _along
 from stepper_drivers.vendors.xplus_mt import XplusMtDrive
 from stepper_drivers_msgs.msg import DriveStatus
 from stepper_sim.harness import CONFIG, Proc, executable, free_port, wait_for

@@ -29,8 +29,8 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64
 from std_srvs.srv import SetBool
 from stepper_drivers.cli.ros_client import RosClient
-from stepper_sim.harness import Proc, executable, free_port
 from stepper_drivers_msgs.msg import DriveStatus
+from stepper_sim.harness import Proc, executable, free_port
 import yaml
 
 NODE = '/vector_step_node'

@@ -22,7 +22,7 @@ import sys
 import tempfile
 import time
 
-from stepper_drivers.drive import complete
+from stepper_drivers.contract.drive import complete
 from stepper_drivers.protocol import xmind_k as xk
 from stepper_drivers.vendors import xmind_k as v
 
@@ -31,7 +31,7 @@ GOAL = 0.90
 
 
 def serve(link: str, ready, stop) -> None:
-    from stepper_sim.xmind_k_sim import build_line
+    from stepper_sim.xmind_k.sim import build_line
     line = build_line({'port': link, 'line_timing': True},
                       {f'axis{i}': {'address': i} for i in (1, 2, 3)})
     line.start()

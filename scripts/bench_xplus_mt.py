@@ -20,12 +20,11 @@ import sys
 import time
 
 from pymodbus.client import ModbusTcpClient
-
 from stepper_drivers.vendors.xplus_mt import SPLIT_READS, STATE_BLOCK, VENDOR
 
 SIM_CODE = r"""
 import sys
-from stepper_sim.xplus_mt_sim import XplusMtSim
+from stepper_sim.xplus_mt.sim import XplusMtSim
 sim = XplusMtSim(port=0, strict={strict})
 sim.start()
 print(sim.port, flush=True)

@@ -16,21 +16,21 @@ from __future__ import annotations
 import argparse
 import asyncio
 import os
+import pathlib
 import statistics
 import struct
 import sys
 import tempfile
 import threading
 import time
-import pathlib
 
 os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
 
 from std_msgs.msg import Float64
 from std_srvs.srv import SetBool
 from stepper_drivers.cli.ros_client import RosClient
-from stepper_sim.harness import CONFIG, Proc, executable, free_port
 from stepper_drivers_msgs.msg import DriveStatus
+from stepper_sim.harness import CONFIG, Proc, executable, free_port
 
 STATE_BLOCK = (1001, 21)      # the block the node reads per drive per cycle (1001..1021)
 TARGET_POSITION = 1042

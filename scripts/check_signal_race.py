@@ -7,7 +7,7 @@ SIGTERM at a random moment once it spins, and counts the processes still alive a
   rclpy    rclpy's signal handler and executor.spin() in the main thread (the node before
            process.py): the handler wakes the executor before it shuts the context down, and
            an executor woken in between waits again, for ever.
-  process  stepper_drivers.process.spin_node, as every vendor node runs: the signals blocked
+  process  stepper_drivers.ros.process.spin_node, as every vendor node runs: the signals blocked
            in every thread, sigwait in the main thread.
 --load keeps two busy-loop processes running (30 ms of work per 20 and 10 ms of sleep), the
 load under which the race shows: without load it is rarely seen.
@@ -28,7 +28,7 @@ import time
 
 def child(way: str) -> None:
     if way == 'process':
-        from stepper_drivers.process import block_shutdown_signals, spin_node
+        from stepper_drivers.ros.process import block_shutdown_signals, spin_node
         block_shutdown_signals()
     import rclpy
     from rclpy.executors import SingleThreadedExecutor

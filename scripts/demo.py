@@ -27,11 +27,11 @@ os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
 
 from std_msgs.msg import Float64
 from std_srvs.srv import SetBool, Trigger
-from stepper_drivers import vendor_table
 from stepper_drivers.cli import view
 from stepper_drivers.cli.ros_client import RosClient
-from stepper_sim.harness import CONFIG, ROOT, Proc, executable, free_port
+from stepper_drivers.vendors import table as vendor_table
 from stepper_drivers_msgs.msg import DriveStatus
+from stepper_sim.harness import CONFIG, ROOT, Proc, executable, free_port
 import yaml
 
 # The moves of a vendor's drives; DEFAULT_MOVES for a vendor not named here.

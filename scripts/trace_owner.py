@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
-"""Record what goes on the wire for each command run through a BusSupervisor, per vendor, and
-compare two recordings: a check that a change of the bus owner (supervisor) changes nothing
+"""Record what goes on the wire for each command run through a BusOwner, per vendor, and
+compare two recordings: a check that a change of the bus owner (bus owner) changes nothing
 the drives see. No ROS.
 
     python scripts/trace_owner.py --out /tmp/trace.json [--vendor xplus_mt rd4 ...]
@@ -9,7 +9,7 @@ the drives see. No ROS.
 For each vendor it starts the simulator in this process (as the drive tests do: X-PLUS MT's
 Modbus TCP server, RD4's Modbus RTU line and X-MIND K's ASCII line on a pty with parity N, the
 Vector Step nodes behind a socketcand broker), builds one bus with two drives and one
-BusSupervisor (publish_rate_hz 1.0: few polls), then runs a fixed scenario, one command after
+BusOwner (publish_rate_hz 1.0: few polls), then runs a fixed scenario, one command after
 the other, each awaited, with a bounded wait for the drive's state in between: connect (the
 owner's own), both drives enabled at once, a move, a velocity run and its stop, a homing, a
 disable, a fault reset, a save, a register read and write, the second drive's disable and the
@@ -131,7 +131,7 @@ def _labelled(label: str, call: int):
 
 
 def _labelled_steps(label: str, call: int, gen):
-    """A step-wise call (drive.py Steps) whose every step runs under the label."""
+    """A step-wise call (a drive.Operation) whose every step runs under the label."""
     value, exc = None, None
     while True:
         with _labelled(label, call):
@@ -153,7 +153,7 @@ def _labelled_steps(label: str, call: int, gen):
 def labelled_call(label_of: Callable[[], tuple[str, str]], fn: Callable) -> Callable:
     """fn with a label set around it (and around each step of a step-wise result); a call made
     while a label is set (a drive method calling another) keeps the outer label."""
-    from stepper_drivers.drive import is_steps
+    from stepper_drivers.contract.drive import is_operation
 
     def call(*args, **kwargs):
         if getattr(_ctx, 'label', None) is not None:
@@ -163,7 +163,7 @@ def labelled_call(label_of: Callable[[], tuple[str, str]], fn: Callable) -> Call
         number = next(REC.calls)
         with _labelled(label, number):
             result = fn(*args, **kwargs)
-        if is_steps(result):
+        if is_operation(result):
             return _labelled_steps(label, number, result)
         return result
     return call
@@ -329,9 +329,9 @@ class Bench:
 class XplusMtBench(Bench):
     def __init__(self, tmp):
         super().__init__(tmp)
-        from stepper_drivers.drive import Homing, Motion
+        from stepper_drivers.contract.drive import Homing, Motion
         from stepper_drivers.vendors import xplus_mt
-        from stepper_sim.xplus_mt_sim import XplusMtDriveConfig, XplusMtSim
+        from stepper_sim.xplus_mt.sim import XplusMtDriveConfig, XplusMtSim
         self.vendor = xplus_mt.VENDOR
         self.sim = XplusMtSim(port=0, storage_dir=str(tmp), drives=[
             XplusMtDriveConfig('axis1', unit_id=1, home_switch_steps=20_000.0,
@@ -358,9 +358,9 @@ class XplusMtBench(Bench):
 class Rd4Bench(Bench):
     def __init__(self, tmp):
         super().__init__(tmp)
-        from stepper_drivers.drive import Homing, Motion
+        from stepper_drivers.contract.drive import Homing, Motion
         from stepper_drivers.vendors import rd4
-        from stepper_sim.rd4_sim import Rd4DriveSim, RtuLine
+        from stepper_sim.rd4.sim import Rd4DriveSim, RtuLine
         self.vendor = rd4.VENDOR
         self.port = str(tmp / 'rd4.pty')
         self.line = RtuLine([Rd4DriveSim('axis1', 1), Rd4DriveSim('axis2', 2, 'T48')],
@@ -384,9 +384,9 @@ class Rd4Bench(Bench):
 class XmindKBench(Bench):
     def __init__(self, tmp):
         super().__init__(tmp)
-        from stepper_drivers.drive import Homing, Motion
+        from stepper_drivers.contract.drive import Homing, Motion
         from stepper_drivers.vendors import xmind_k
-        from stepper_sim.xmind_k_sim import build_line
+        from stepper_sim.xmind_k.sim import build_line
         self.vendor = xmind_k.VENDOR
         self.line = build_line({'port': str(tmp / 'tty')},
                                {'axis1': {'address': 1, 'px_edge_steps': 3000.0},
@@ -418,10 +418,10 @@ class XmindKBench(Bench):
 class VectorStepBench(Bench):
     def __init__(self, tmp):
         super().__init__(tmp)
-        from stepper_drivers.drive import Homing, Motion
+        from stepper_drivers.contract.drive import Homing, Motion
         from stepper_drivers.vendors import vector_step
-        from stepper_sim.socketcand_broker import SocketcandBroker
-        from stepper_sim.vector_step_sim import NodeConfig, VectorStepSim
+        from stepper_sim.core.socketcand_broker import SocketcandBroker
+        from stepper_sim.vector_step.sim import NodeConfig, VectorStepSim
         logging.getLogger('can.interfaces.socketcand.socketcand').setLevel(logging.ERROR)
         self.vendor = vector_step.VENDOR
         self.broker = SocketcandBroker(port=0, ready_delay_s=0.01)
@@ -457,8 +457,8 @@ BENCHES = {'xplus_mt': XplusMtBench, 'rd4': Rd4Bench, 'xmind_k': XmindKBench,
 
 # ----------------------------------------------------------------------------- the scenario
 class Scenario:
-    def __init__(self, sup, bench: Bench):
-        self.sup = sup
+    def __init__(self, bus_owner, bench: Bench):
+        self.bus_owner = bus_owner
         self.bench = bench
         self.n = 0
         self.notes: list[str] = []
@@ -468,11 +468,11 @@ class Scenario:
 
     def submit(self, drive: str, what: str, make: Callable, fn: Callable
                ) -> tuple[str, concurrent.futures.Future]:
-        from stepper_drivers.commands import Command
+        from stepper_drivers.owner.commands import Command
         label = self.label(drive, what)
         REC.kinds[label] = 'command'
         command = make(Command, labelled_call(lambda: (label, 'command'), fn), what)
-        return label, self.sup.submit(drive, command)
+        return label, self.bus_owner.submit(drive, command)
 
     def settle(self, label: str, fut: concurrent.futures.Future) -> Any:
         try:
@@ -498,10 +498,10 @@ class Scenario:
         deadline = time.monotonic() + timeout_s
         while True:
             polled = threading.Event()
-            self.sup.wait_poll(drive, 2.0, lambda _ok, event=polled: event.set())
-            self.sup.poll_soon(drive)
+            self.bus_owner.wait_poll(drive, 2.0, lambda _ok, event=polled: event.set())
+            self.bus_owner.poll_soon(drive)
             polled.wait(3.0)
-            state = self.sup.slots[drive].state
+            state = self.bus_owner.slots[drive].state
             if cond(state):
                 return True
             if time.monotonic() > deadline:
@@ -512,19 +512,20 @@ class Scenario:
             time.sleep(0.01)
 
     def play(self) -> None:
-        from stepper_drivers.drive import HomingState
-        b, sup = self.bench, self.sup
-        d1, d2 = (sup.slots[n].drive for n in ('axis1', 'axis2'))
+        from stepper_drivers.contract.drive import HomingState
+        b, bus_owner = self.bench, self.bus_owner
+        d1, d2 = (bus_owner.slots[n].drive for n in ('axis1', 'axis2'))
         deadline = time.monotonic() + WAIT_S
-        while not all(s.connected for s in sup.slots.values()):
+        while not all(s.connected for s in bus_owner.slots.values()):
             if time.monotonic() > deadline:
                 self.notes.append('not every drive connected: ' + ', '.join(
-                    f'{s.name}: {s.last_error}' for s in sup.slots.values() if not s.connected))
+                    f'{s.name}: {s.last_error}' for s in bus_owner.slots.values()
+                    if not s.connected))
                 return
             time.sleep(0.01)
         self.n += 1       # both at once, recorded per drive
         both = [self.submit(n, 'enable (both at once)', lambda C, fn, w: C.enable(fn, w),
-                            sup.slots[n].drive.enable) for n in ('axis1', 'axis2')]
+                            bus_owner.slots[n].drive.enable) for n in ('axis1', 'axis2')]
         for label, fut in both:
             self.settle(label, fut)
         for n in ('axis1', 'axis2'):
@@ -533,7 +534,7 @@ class Scenario:
                  lambda: d1.move_to(b.target, b.motion))
         self.wait('axis1', 'standstill at the target', lambda s: not s.moving
                   and s.target_reached and s.position_steps == b.target)
-        sup.arm_watchdog('axis1')
+        bus_owner.arm_watchdog('axis1')
         self.run('axis1', f'set_velocity {b.velocity:g}',
                  lambda C, fn, w: C.velocity_stream(fn, w, b.velocity),
                  lambda: d1.set_velocity(b.velocity, b.motion))
@@ -559,7 +560,7 @@ class Scenario:
 
 
 def trace_vendor(key: str) -> tuple[dict[str, Any], list[str]]:
-    from stepper_drivers.supervisor import BusSupervisor
+    from stepper_drivers.owner import BusOwner
     global REC
     REC = Recorder()
     with tempfile.TemporaryDirectory(prefix=f'trace_owner_{key}_') as tmp:
@@ -569,16 +570,16 @@ def trace_vendor(key: str) -> tuple[dict[str, Any], list[str]]:
             for name, drive in drives.items():
                 instrument_drive(name, drive)
             events: list[str] = []
-            sup = BusSupervisor(bus, drives, dict(SETTINGS), name=f'trace {key}',
+            bus_owner = BusOwner(bus, drives, dict(SETTINGS), name=f'trace {key}',
                                 on_event=lambda level, drive, text: events.append(
                                     f'{level} {drive}: {text}'))
-            sup.start()
-            scenario = Scenario(sup, bench)
+            bus_owner.start()
+            scenario = Scenario(bus_owner, bench)
             try:
                 scenario.play()
             finally:
                 REC.phase = 'shutdown'
-                if not sup.shutdown(2.0, disable=()):
+                if not bus_owner.shutdown(2.0, disable=()):
                     scenario.notes.append('the owner did not end at the shutdown')
         finally:
             bench.stop()
@@ -631,11 +632,11 @@ def main() -> int:
         parser.error('--out FILE or --compare A B')
     logging.basicConfig(level=logging.ERROR, format='%(name)s: %(message)s')
     import stepper_drivers
-    import stepper_drivers.supervisor
+    import stepper_drivers.owner
     meta = {'stepper_drivers': os.path.realpath(stepper_drivers.__file__),
-            'supervisor': os.path.realpath(stepper_drivers.supervisor.__file__)}
+            'bus owner': os.path.realpath(stepper_drivers.owner.__file__)}
     print(f'stepper_drivers from {meta["stepper_drivers"]}')
-    print(f'supervisor from {meta["supervisor"]}')
+    print(f'bus owner from {meta["bus owner"]}')
     install_transport_probes()
     out: dict[str, Any] = {'_meta': meta}
     for key in args.vendor:

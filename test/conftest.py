@@ -8,7 +8,7 @@ import pytest
 
 # Fast DDS discovery must not leave the machine (it multicasts on every interface otherwise).
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
-# Every node a test starts checks the writes to its bus owners' slots (supervisor/slot.py).
+# Every node a test starts checks the writes to its bus owners' slots (owner/slot.py).
 os.environ['STEPPER_DRIVERS_CHECK_WRITERS'] = '1'
 # Announce participants every 0.3 s instead of 3 s: clients and nodes find each other sooner.
 os.environ.setdefault('FASTRTPS_DEFAULT_PROFILES_FILE', str(

@@ -11,8 +11,7 @@ import time
 
 # re-exported (hence F401): the test modules import the harness' pieces from here
 from stepper_drivers.cli.ros_client import RosClient  # noqa: F401
-from stepper_sim.harness import (CONFIG, INSTALL, ROOT, Proc, executable,  # noqa: F401
-                                 free_port, wait_for)
+from stepper_sim.harness import CONFIG, INSTALL, ROOT, Proc, executable, free_port, wait_for  # noqa: F401
 
 
 class Procs(list):

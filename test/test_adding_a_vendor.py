@@ -1,7 +1,7 @@
 """docs/adding_a_vendor.md is what the code needs.
 
 The page's code blocks (each `# file: <path>`, and the `# row:` block) are the toy vendor. This
-test writes them into a temporary directory, with copies of vendor_table.py and both setup.py that
+test writes them into a temporary directory, with copies of vendors/table.py and both setup.py that
 get the row appended, and shows that the table's readers pick the vendor up with no other file
 edited: the console scripts of both packages, the `toy_node` executable function, stepperctl's
 tables, the generic launch file and the demo's as `ros2 launch` runs them, and the node itself
@@ -20,7 +20,7 @@ import sys
 
 import pytest
 from rosharness import ROOT
-from stepper_drivers import vendor_table
+from stepper_drivers.vendors import table as vendor_table
 import yaml
 
 DOC = ROOT / 'docs' / 'adding_a_vendor.md'
@@ -41,8 +41,8 @@ def doc_blocks() -> tuple[dict[str, str], str]:
 
 
 def table_with_row(row_text: str) -> str:
-    """vendor_table.py with the row appended to ROWS."""
-    text = (ROOT / 'src/stepper_drivers/stepper_drivers/vendor_table.py').read_text()
+    """vendors/table.py with the row appended to ROWS."""
+    text = (ROOT / 'src/stepper_drivers/stepper_drivers/vendors/table.py').read_text()
     end = text.index('\n)\n', text.index('ROWS: tuple[VendorRow, ...] = ('))
     return text[:end] + '\n    ' + row_text.replace('\n', '\n    ') + ',' + text[end:]
 
@@ -58,7 +58,7 @@ def toy(tmp_path_factory):
     for package in ('stepper_drivers', 'stepper_sim'):
         (tmp / 'src' / package).mkdir(parents=True, exist_ok=True)
         shutil.copy(ROOT / 'src' / package / 'setup.py', tmp / 'src' / package / 'setup.py')
-    table = tmp / 'src/stepper_drivers/stepper_drivers/vendor_table.py'
+    table = tmp / 'src/stepper_drivers/stepper_drivers/vendors/table.py'
     table.parent.mkdir(parents=True, exist_ok=True)
     table.write_text(table_with_row(row_text))
     return tmp, files
@@ -67,13 +67,14 @@ def toy(tmp_path_factory):
 def test_the_walk_through_writes_the_pieces_the_table_names(toy):
     """The files of the page are exactly the pieces the row's conventions point at."""
     _tmp, files = toy
-    rows = runpy.run_path(str(_tmp / 'src/stepper_drivers/stepper_drivers/vendor_table.py'))
+    rows = runpy.run_path(str(_tmp / 'src/stepper_drivers/stepper_drivers/vendors/table.py'))
     row = rows['BY_KEY'][KEY]
-    module_file = 'src/stepper_drivers/' + row.module.replace('.', '/') + '.py'
-    sim_file = 'src/stepper_sim/' + row.simulator.split(':')[0].replace('.', '/') + '.py'
+    # the vendor's package (its entry) and the simulator's
+    package = 'src/stepper_drivers/' + row.module.replace('.', '/')
+    sim_file = 'src/stepper_sim/' + row.simulator.split(':')[0].replace('.', '/') + '/__init__.py'
     # five files and the row: nothing else
     assert set(files) == {
-        module_file, module_file.replace('.py', '_map.py'), sim_file,
+        f'{package}/__init__.py', f'{package}/regmap.py', sim_file,
         f'config/{row.params_file}', f'config/{row.sim_params_file}'}
     assert [r.key for r in rows['ROWS']] == [*vendor_table.KEYS, KEY]
 
@@ -95,15 +96,16 @@ def test_both_setup_py_make_the_console_scripts_from_the_row(toy):
     tmp, _files = toy
     drivers = console_scripts(tmp / 'src/stepper_drivers/setup.py')
     sims = console_scripts(tmp / 'src/stepper_sim/setup.py')
-    assert drivers['toy_node'] == 'stepper_drivers.entry_points:main'
-    assert drivers['toy_lifecycle_node'] == 'stepper_drivers.entry_points:main'
-    assert sims['toy_sim'] == 'stepper_sim.toy_sim:main'
+    assert drivers['toy_node'] == 'stepper_drivers.ros.entry_points:main'
+    assert drivers['toy_lifecycle_node'] == 'stepper_drivers.ros.entry_points:main'
+    assert sims['toy_sim'] == 'stepper_sim.toy:main'
     # and without the row, as the workspace is
     assert 'toy_node' not in console_scripts(ROOT / 'src/stepper_drivers/setup.py')
 
 
 def load(name: str, path) -> object:
-    spec = importlib.util.spec_from_file_location(name, path)
+    package = [str(path.parent)] if path.name == '__init__.py' else None
+    spec = importlib.util.spec_from_file_location(name, path, submodule_search_locations=package)
     module = importlib.util.module_from_spec(spec)
     sys.modules[name] = module
     spec.loader.exec_module(module)
@@ -112,24 +114,22 @@ def load(name: str, path) -> object:
 
 @pytest.fixture
 def installed(toy, monkeypatch):
-    """The toy modules importable under their package names, the table with the row in place of
-    vendor_table, and the table's readers reloaded on it (and back afterwards)."""
+    """The toy packages importable under their names, the table with the row in place of
+    vendors/table.py, and the table's readers reloaded on it (and back afterwards)."""
     tmp, _files = toy
-    for name in ('stepper_drivers.vendor_table', 'stepper_drivers.vendors.toy_map',
-                 'stepper_drivers.vendors.toy', 'stepper_sim.toy_sim'):
+    for name in ('stepper_drivers.vendors.table', 'stepper_drivers.vendors.toy.regmap',
+                 'stepper_drivers.vendors.toy', 'stepper_sim.toy'):
         monkeypatch.setitem(sys.modules, name, sys.modules.get(name))
-    import stepper_drivers
-    src = tmp / 'src/stepper_drivers/stepper_drivers'
-    monkeypatch.setattr(stepper_drivers, 'vendor_table',
-                        load('stepper_drivers.vendor_table', src / 'vendor_table.py'))
-    load('stepper_drivers.vendors.toy_map',
-         tmp / 'src/stepper_drivers/stepper_drivers/vendors/toy_map.py')
-    toy_module = load('stepper_drivers.vendors.toy',
-                      tmp / 'src/stepper_drivers/stepper_drivers/vendors/toy.py')
+    from stepper_drivers import vendors as vendors_package
+    vendors = tmp / 'src/stepper_drivers/stepper_drivers/vendors'
+    monkeypatch.setattr(vendors_package, 'table',
+                        load('stepper_drivers.vendors.table', vendors / 'table.py'))
+    load('stepper_drivers.vendors.toy.regmap', vendors / 'toy' / 'regmap.py')
+    toy_module = load('stepper_drivers.vendors.toy', vendors / 'toy' / '__init__.py')
     import stepper_sim
-    sim = load('stepper_sim.toy_sim', tmp / 'src/stepper_sim/stepper_sim/toy_sim.py')
-    from stepper_drivers import entry_points
+    sim = load('stepper_sim.toy', tmp / 'src/stepper_sim/stepper_sim/toy/__init__.py')
     from stepper_drivers.cli import main, scan
+    from stepper_drivers.ros import entry_points
     readers = [importlib.reload(m) for m in (entry_points, scan, main)]
     try:
         yield tmp, toy_module, sim, readers
@@ -153,9 +153,9 @@ def test_the_executable_and_stepperctl_know_the_vendor(installed):
 def test_the_node_runs_on_the_row_with_the_vendors_rules(installed, monkeypatch):
     import rclpy
     from rclpy.parameter import Parameter
-    from stepper_drivers.drive import complete
-    from stepper_drivers.node import DriveNode
-    from stepper_drivers.params import ParameterError, declare_all
+    from stepper_drivers.contract.drive import complete
+    from stepper_drivers.ros.node import DriveNode
+    from stepper_drivers.ros.params import ParameterError, declare_all
     tmp, toy_module, sim, _readers = installed
     config = str(tmp / 'config' / 'toy.yaml')
     monkeypatch.setenv('ROS_AUTOMATIC_DISCOVERY_RANGE', 'OFF')     # in no graph (see there)

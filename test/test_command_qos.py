@@ -9,8 +9,7 @@ reader's history kind, so it is checked here on each vendor's node built in this
 from __future__ import annotations
 
 import pytest
-from stepper_drivers.vendor_table import KEYS
-
+from stepper_drivers.vendors.table import KEYS
 from test_param_rules import make_node, ros  # noqa: F401 - ros is the fixture make_node needs
 
 
@@ -83,6 +82,7 @@ def test_a_command_is_judged_by_the_age_of_its_sample(ros):
     refused as clocks that disagree. (The drive is not connected: a command that passes the age
     check is refused for that.)"""
     import time
+
     from sensor_msgs.msg import JointState
     from std_msgs.msg import Float64
     node = make_node('xplus_mt', '-p', 'position_command_max_age_s:=0.2')

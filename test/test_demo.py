@@ -15,7 +15,6 @@ import time
 import uuid
 
 import pytest
-
 from rosharness import ROOT
 
 

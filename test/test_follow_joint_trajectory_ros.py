@@ -21,8 +21,8 @@ from builtin_interfaces.msg import Duration, Time
 from control_msgs.action import FollowJointTrajectory
 from control_msgs.msg import JointComponentTolerance, JointTolerance
 import pytest
-from rosharness import (MIDDLEWARE_S, Procs, RosClient, Track, TrajectoryGoal as Client,
-                        wait_for)
+from rosharness import MIDDLEWARE_S, Procs, RosClient, Track, wait_for
+from rosharness import TrajectoryGoal as Client
 from std_srvs.srv import Trigger
 from test_rd4_ros import Bench as Rd4Bench
 from test_vector_step_ros import Rig as VectorRig
@@ -407,8 +407,8 @@ def test_a_goals_tolerances_resolve_over_the_constraints_parameters_as_jtcs():
     """The node's resolution (node_trajectory, no process): > 0 the goal's bound, 0 the
     constraints.* parameter (0 there: not checked), -1 not checked; goal_time_tolerance 0 is
     constraints.goal_time, -1 no limit."""
-    from stepper_drivers.node_trajectory import TrajectoryInterface
-    from stepper_drivers.units import UnitConversion
+    from stepper_drivers.contract.units import UnitConversion
+    from stepper_drivers.ros.trajectory_interface import TrajectoryInterface
     conv = UnitConversion(12800.0)
     spu = conv.steps_per_unit
     params = {'constraints.goal_time': 0.5, 'constraints.stopped_velocity_tolerance': 0.02,

@@ -18,7 +18,7 @@ import re
 import sys
 
 import pytest
-from stepper_drivers.vendor_table import BY_KEY, KEYS
+from stepper_drivers.vendors.table import BY_KEY, KEYS
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 DOC = ROOT / 'docs' / 'interface.md'
@@ -36,8 +36,8 @@ def build_nodes() -> dict:
     """{vendor: (interfaces, params)} from a DriveNode per vendor in this process (the node
     layer uses rclpy's default context: nothing else in the test process does)."""
     import rclpy
-    from stepper_drivers.node import DriveNode
-    from stepper_drivers.params import declare_all
+    from stepper_drivers.ros.node import DriveNode
+    from stepper_drivers.ros.params import declare_all
 
     out = {}
     args = ['doc', '--ros-args', '-p', f'drives:=[{DRIVE}]']
@@ -90,7 +90,7 @@ def interfaces(node, node_name: str) -> set[tuple[str, str, str]]:
 
 def params(node, vendor) -> dict[str, dict]:
     """Declared parameters by name (drives.<drive>. for per-drive ones), with their metadata."""
-    from stepper_drivers.params import BUS_PARAMS, DRIVE_PARAMS
+    from stepper_drivers.ros.params import BUS_PARAMS, DRIVE_PARAMS
     specs = {p.name: p for p in (*BUS_PARAMS, *vendor.params)
              if getattr(p, 'scope', 'bus') == 'bus'}
     specs.update({f'drives.<drive>.{p.name}': p for p in DRIVE_PARAMS})
@@ -161,7 +161,7 @@ HEAD = ('| name | type | default | range / allowed | unit | runtime | descriptio
 
 def render(nodes: dict) -> dict[str, str]:
     """The generated blocks by marker name."""
-    from stepper_drivers.params import BUS_PARAMS, DRIVE_PARAMS
+    from stepper_drivers.ros.params import BUS_PARAMS, DRIVE_PARAMS
     first = nodes[VENDORS[0]][1]
     blocks = {}
     common_bus = [p.name for p in BUS_PARAMS] + ['drives']

@@ -18,7 +18,7 @@ import types
 
 import pytest
 from rosharness import INSTALL, ROOT
-from stepper_drivers.vendor_table import BY_KEY, KEYS
+from stepper_drivers.vendors.table import BY_KEY, KEYS
 import yaml
 
 LAUNCH_DIR = ROOT / 'src' / 'stepper_drivers' / 'launch'
@@ -27,13 +27,14 @@ LAUNCH_FILES = sorted(LAUNCH_DIR.glob('*.launch.py'))
 SOURCES = [p for p in LAUNCH_FILES if not p.is_symlink()]     # the links are driver.launch.py
 VENDORS = KEYS
 ALLOWED_PACKAGES = ('os', 'launch', 'launch_ros', 'ament_index_python')    # and their modules
-ALLOWED_MODULES = ('stepper_drivers.vendor_table',)  # plain data: no rclpy, no vendor module
+ALLOWED_MODULES = ('stepper_drivers.vendors.table',)  # plain data: no rclpy, no vendor module
 
 
 def console_scripts(package: str) -> set[str]:
     """Executables of a package: the console_scripts its setup.py gives setuptools (run with a
     stand-in `setup`; setup.py reads the vendor table itself)."""
     import runpy
+
     import setuptools
     captured = {}
     saved = setuptools.setup

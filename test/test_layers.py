@@ -1,11 +1,25 @@
-"""The import graph runs only downwards.
+"""The import graph runs only downwards, and the folders are the layers.
 
-    protocol/  ->  vendors/  ->  supervisor / node / cli / entry points
-    (drive.py, the Bus/Drive contract, and the ROS-free helpers sit under all of them;
-    every transport, a drive.Bus, lives in protocol/; a vendor's bus scanner, vendors/*_scan,
-    uses the scanning helpers and its map, never its vendor module, which imports it, nor cli/)
-    stepper_sim -> protocol codecs and vendors/*_map only (never a drive class, cia402.py, the
-    supervisor or the node: a simulator shares codecs and maps with the driver, not its logic)
+stepper_drivers, bottom to top (each folder imports only the folders listed under it):
+
+    contract/    Bus, Drive, DriveState, errors, units, parameter and scanner contracts
+    protocol/    frames and transports (every drive.Bus lives here)        -> contract
+    profiles/    device profiles (CiA 402: tables, walker, modes, drive)   -> protocol, contract
+    vendors/     one package per vendor (entry, map, scanner) + the table  -> profiles, protocol,
+                                                                              contract
+    owner/       the bus owner: one thread per bus, its order rules        -> contract
+    motion/      trajectories and their follower                           -> owner, contract
+    cli/         stepperctl                                                -> vendors, contract
+    ros/         the node, its services, publishing, trajectory interface  -> all but cli
+
+contract/ to motion/ import no ROS. A vendor package uses only itself among the vendors; its
+map (`regmap`) uses protocol/ only; its scanner (`scan`) uses contract/, protocol/ and its map,
+never its vendor entry, which imports it, nor cli/. The table (vendors/table.py) is plain data.
+
+stepper_sim: core/ (axis, motion, lines, faults, the broker, the sim's ROS node), cia402/ (the
+simulated CiA 402 slave) -> core/, one package per vendor -> cia402/, core/; harness.py starts
+processes for tests and benchmarks. A simulator shares protocol codecs (not transports) and its
+own vendor's map with the driver, never a drive class, profiles/, the owner or the node.
 
 Every module's imports are read with `ast` (a lazy import inside a function counts as much as
 one at the top) and resolved to dotted names; each rule below names what a layer may use.
@@ -24,11 +38,23 @@ SIM = ROOT / 'src' / 'stepper_sim' / 'stepper_sim'
 
 ROS = ('rclpy', 'ament_index_python', 'rcl_interfaces', 'launch', 'launch_ros',
        'rosidl_runtime_py')
-# ROS-free modules under the vendors: the contract, CiA 402, units, rules, planning, supervisor,
-# what the bus scanners share
-CORE = ('drive', 'cia402', 'cia402_drive', 'cia402_modes', 'units', 'param_rules', 'trajectory',
-        'commands', 'supervisor', 'poll_group', 'follow', 'scanning')
+# what each top folder of stepper_drivers may import from the package, besides itself
+LAYERS = {
+    'contract': (),
+    'protocol': ('contract',),
+    'profiles': ('contract', 'protocol'),
+    'vendors': ('contract', 'protocol', 'profiles'),
+    'owner': ('contract',),
+    'motion': ('contract', 'owner'),
+    'cli': ('contract', 'vendors'),
+    'ros': ('contract', 'protocol', 'profiles', 'vendors', 'owner', 'motion'),
+}
+ROS_FREE = ('contract', 'protocol', 'profiles', 'vendors', 'owner', 'motion')
+# what each top folder of stepper_sim may import from stepper_sim, besides itself
+SIM_LAYERS = {'core': (), 'cia402': ('core',)}
+SIM_VENDOR = ('core', 'cia402')
 # protocol modules that are transports (a bus, a line): the simulators do not use them
+# (modbus_rtu holds the RTU frame codec the RD4 simulator answers with, beside its bus)
 TRANSPORTS = ('canopen_link', 'xmind_k_bus', 'ascii_line', 'modbus_tcp')
 
 
@@ -68,60 +94,68 @@ def within(name: str, *prefixes: str) -> bool:
     return any(name == p or name.startswith(p + '.') for p in prefixes)
 
 
-def drivers_module(name: str) -> str:
-    """'stepper_drivers.protocol.modbus_rtu.ModbusRtuBus' -> 'protocol.modbus_rtu'."""
-    parts = name.split('.')[1:]
-    if parts and parts[0] in ('protocol', 'vendors', 'cli'):
-        return '.'.join(parts[:2])
-    return parts[0] if parts else ''
+def top(name: str) -> str:
+    """'stepper_drivers.protocol.modbus_rtu.ModbusRtuBus' -> 'protocol'."""
+    parts = name.split('.')
+    return parts[1] if len(parts) > 1 else ''
+
+
+def vendor_part(name: str) -> tuple[str, str]:
+    """'stepper_drivers.vendors.rd4.scan.RD4_SCANNER' -> ('rd4', 'scan'); the vendor entry
+    (the package itself) -> ('rd4', ''); vendors/table -> ('table', '')."""
+    parts = name.split('.')[2:]
+    key = parts[0] if parts else ''
+    sub = parts[1] if len(parts) > 1 and parts[1] in ('regmap', 'scan', 'drive') else ''
+    return key, sub
 
 
 def problems(module: str, imported: set[str]) -> list[str]:
     """What `module` may not import, one line each."""
     out = []
-    ours = {drivers_module(n) for n in imported if within(n, 'stepper_drivers')}
+    ours = {n for n in imported if within(n, 'stepper_drivers')}
     ros = sorted(n for n in imported if is_ros(n))
     sim = sorted(n for n in imported if within(n, 'stepper_sim'))
 
     def bad(what, names):
         out.extend(f'{module} imports {n} ({what})' for n in sorted(names))
 
-    if within(module, 'stepper_drivers.protocol'):
-        bad('protocol/ uses only protocol/ and drive.py',
-            {m for m in ours if not (m == 'drive' or m.startswith('protocol'))})
-        bad('protocol/ imports no ROS', ros)
+    if within(module, 'stepper_drivers'):
+        layer = top(module)
         bad('the product does not import the simulators', sim)
-    elif within(module, 'stepper_drivers.vendors'):
-        if module.endswith('_map'):
-            bad('a map uses only protocol/ (codecs, CiA numbers)',
-                {m for m in ours if not m.startswith('protocol')})
-        elif module.endswith('_scan'):
-            bad('a scanner uses protocol/, vendors/*_map and the ROS-free core only',
-                {m for m in ours if not (m in CORE or m.startswith('protocol')
-                                         or (m.startswith('vendors.') and m.endswith('_map')))})
-        else:
-            bad('a vendor uses protocol/, vendors/ and the ROS-free core only',
-                {m for m in ours if not (m in CORE or m.startswith(('protocol', 'vendors')))})
-        bad('vendors/ import no ROS (the node layer resolves what needs ROS)', ros)
-        bad('the product does not import the simulators', sim)
-    elif (module.split('.')[-1] in CORE and module.count('.') == 1) \
-            or within(module, 'stepper_drivers.supervisor'):
-        bad('the core uses only the core',
-            {m for m in ours if m not in CORE})
-        bad('the core imports no ROS', ros)
-        bad('the product does not import the simulators', sim)
-    elif within(module, 'stepper_drivers'):
-        bad('the product does not import the simulators', sim)
-    elif module in ('stepper_sim.harness', 'stepper_sim.socketcand_broker'):
-        pass   # test infrastructure, not a simulator
+        if layer in ROS_FREE:
+            bad(f'{layer}/ imports no ROS', ros)
+        if layer in LAYERS:
+            allowed = (layer, *LAYERS[layer])
+            bad(f'{layer}/ uses only {", ".join(f"{a}/" for a in allowed)}',
+                {n for n in ours if top(n) not in allowed})
+        if layer == 'vendors':
+            key, sub = vendor_part(module)
+            mine = {n for n in ours if top(n) == 'vendors'}
+            if key == 'table':
+                bad('the vendor table is plain data', ours)
+            bad('a vendor package uses no other vendor', {
+                n for n in mine if vendor_part(n)[0] != key})
+            if sub == 'regmap':
+                bad('a map uses only protocol/ (codecs, CiA numbers)',
+                    {n for n in ours if top(n) != 'protocol'})
+            elif sub == 'scan':
+                bad('a scanner uses contract/, protocol/ and its map only', {
+                    n for n in ours if top(n) not in ('contract', 'protocol')
+                    and vendor_part(n) != (key, 'regmap')})
+    elif module == 'stepper_sim.harness':
+        pass   # test and benchmark infrastructure, not a simulator
     elif within(module, 'stepper_sim'):
-        allowed = {m for m in ours if (m.startswith('protocol.')
-                                       and m.split('.')[1] not in TRANSPORTS)
-                   or (m.startswith('vendors.') and m.endswith('_map'))}
-        # the sims' ROS layer reads its params file the way the nodes do (no drive logic)
-        if module == 'stepper_sim.sim_node':
-            allowed.add('params')
-        bad('a simulator uses protocol codecs and vendors/*_map only', ours - allowed)
+        layer = top(module)
+        mine = {n for n in imported if within(n, 'stepper_sim') and top(n) != layer}
+        allowed = SIM_LAYERS.get(layer, SIM_VENDOR)
+        bad(f'stepper_sim {layer}/ uses only {", ".join(f"{a}/" for a in allowed) or "itself"}',
+            {n for n in mine if top(n) not in allowed})
+        shared = {n for n in ours if (top(n) == 'protocol' and n.split('.')[2] not in TRANSPORTS)
+                  or (top(n) == 'vendors' and vendor_part(n) == (layer, 'regmap'))}
+        # the sims' ROS node reads its params file the way the nodes do (no drive logic)
+        if module == 'stepper_sim.core.sim_node':
+            shared |= {n for n in ours if within(n, 'stepper_drivers.ros.params')}
+        bad('a simulator uses protocol codecs and its own vendor map only', ours - shared)
     return out
 
 
@@ -136,7 +170,7 @@ def misplaced_transports() -> list[str]:
     out = []
     for path in sorted(DRIVERS.rglob('*.py')):
         module = module_name(path, DRIVERS)
-        if within(module, 'stepper_drivers.protocol') or module == 'stepper_drivers.drive':
+        if within(module, 'stepper_drivers.protocol', 'stepper_drivers.contract.drive'):
             continue
         for node in ast.walk(ast.parse(path.read_text(), str(path))):
             if isinstance(node, ast.ClassDef) and any(
@@ -156,28 +190,47 @@ def test_the_import_graph_runs_only_downwards():
 
 
 @pytest.mark.parametrize('module, imported, words', [
-    ('stepper_drivers.protocol.canopen_link', {'stepper_drivers.vendors.vector_step_map'},
+    ('stepper_drivers.protocol.canopen_link', {'stepper_drivers.vendors.vector_step.regmap'},
      'protocol/ uses only'),
     ('stepper_drivers.protocol.modbus', {'rclpy.node.Node'}, 'protocol/ imports no ROS'),
-    ('stepper_drivers.vendors.vector_step_map',
-     {'ament_index_python.packages.get_package_share_directory'}, 'vendors/ import no ROS'),
-    ('stepper_drivers.vendors.xmind_k', {'stepper_drivers.node.DriveNode'}, 'a vendor uses'),
-    ('stepper_drivers.vendors.rd4_map', {'stepper_drivers.cia402'}, 'a map uses only'),
-    ('stepper_drivers.vendors.rd4_scan', {'stepper_drivers.cli.errors.CliError'},
+    ('stepper_drivers.contract.drive', {'stepper_drivers.owner.commands.Command'},
+     'contract/ uses only'),
+    ('stepper_drivers.profiles.cia402.drive', {'stepper_drivers.vendors.xplus_mt'},
+     'profiles/ uses only'),
+    ('stepper_drivers.vendors.vector_step.regmap',
+     {'ament_index_python.packages.get_package_share_directory'}, 'vendors/ imports no ROS'),
+    ('stepper_drivers.vendors.xmind_k', {'stepper_drivers.ros.node.DriveNode'},
+     'vendors/ uses only'),
+    ('stepper_drivers.vendors.xmind_k', {'stepper_drivers.vendors.rd4.regmap'},
+     'a vendor package uses no other vendor'),
+    ('stepper_drivers.vendors.table', {'stepper_drivers.contract.drive.Vendor'},
+     'the vendor table is plain data'),
+    ('stepper_drivers.vendors.rd4.regmap', {'stepper_drivers.profiles.cia402.state_machine'},
+     'a map uses only'),
+    ('stepper_drivers.vendors.rd4.scan', {'stepper_drivers.vendors.rd4.VENDOR'},
      'a scanner uses'),
-    ('stepper_drivers.vendors.rd4_scan', {'stepper_drivers.vendors.rd4.VENDOR'},
-     'a scanner uses'),
-    ('stepper_drivers.vendors.vector_step_scan', {'rclpy.node.Node'}, 'vendors/ import no ROS'),
-    ('stepper_drivers.scanning', {'stepper_drivers.cli.errors.CliError'}, 'the core uses only'),
-    ('stepper_drivers.scanning', {'rclpy.logging'}, 'the core imports no ROS'),
-    ('stepper_drivers.supervisor', {'stepper_drivers.vendors.rd4'}, 'the core uses only'),
-    ('stepper_drivers.cli.scan', {'stepper_sim.socketcand_broker.SocketcandBroker'},
+    ('stepper_drivers.vendors.vector_step.scan', {'rclpy.node.Node'}, 'vendors/ imports no ROS'),
+    ('stepper_drivers.contract.scanning', {'rclpy.logging'}, 'contract/ imports no ROS'),
+    ('stepper_drivers.owner', {'stepper_drivers.vendors.rd4'}, 'owner/ uses only'),
+    ('stepper_drivers.owner.schedule', {'stepper_drivers.motion.follow.Follower'},
+     'owner/ uses only'),
+    ('stepper_drivers.motion.follow', {'stepper_drivers.ros.node.DriveNode'},
+     'motion/ uses only'),
+    ('stepper_drivers.cli.scan', {'stepper_drivers.ros.node.DriveNode'}, 'cli/ uses only'),
+    ('stepper_drivers.cli.scan', {'stepper_sim.core.socketcand_broker.SocketcandBroker'},
      'the product does not import the simulators'),
-    ('stepper_sim.vector_step_sim', {'stepper_drivers.vendors.vector_step.VectorStepDrive'},
+    ('stepper_sim.vector_step.sim', {'stepper_drivers.vendors.vector_step.VectorStepDrive'},
      'a simulator uses'),
-    ('stepper_sim.vector_step_sim', {'stepper_drivers.protocol.canopen_link.CanBus'},
+    ('stepper_sim.vector_step.sim', {'stepper_drivers.protocol.canopen_link.CanBus'},
      'a simulator uses'),
-    ('stepper_sim.rd4_sim', {'stepper_drivers.cia402'}, 'a simulator uses'),
+    ('stepper_sim.xplus_mt.sim', {'stepper_drivers.vendors.rd4.regmap.REGISTERS'},
+     'a simulator uses'),
+    ('stepper_sim.rd4.sim', {'stepper_drivers.profiles.cia402.state_machine'},
+     'a simulator uses'),
+    ('stepper_sim.core.axis', {'stepper_sim.cia402.slave.PowerStateMachine'},
+     'stepper_sim core/ uses only itself'),
+    ('stepper_sim.rd4.sim', {'stepper_sim.xmind_k.sim.XmindKLine'},
+     'stepper_sim rd4/ uses only'),
 ])
 def test_each_rule_refuses_an_upward_import(module, imported, words):
     found = problems(module, imported)
@@ -185,19 +238,19 @@ def test_each_rule_refuses_an_upward_import(module, imported, words):
 
 
 def test_every_scanner_is_a_vendor_scan_module_the_rules_read():
-    """A vendor's VENDOR.scanner lives in vendors/<key>_scan.py (the rule for scanners reads
-    that name), and the graph above reads it and scanning.py."""
+    """A vendor's VENDOR.scanner lives in vendors/<key>/scan.py (the rule for scanners reads
+    that name), and the graph above reads it and contract/scanning.py."""
     import importlib
 
-    from stepper_drivers import vendor_table
+    from stepper_drivers.vendors import table as vendor_table
 
     read = {name for name, _imported in modules()}
-    assert 'stepper_drivers.scanning' in read
+    assert 'stepper_drivers.contract.scanning' in read
     for row in vendor_table.ROWS:
         scanner = importlib.import_module(row.module).VENDOR.scanner
         if scanner is None:
             continue
-        module = f'stepper_drivers.vendors.{row.key}_scan'
+        module = f'stepper_drivers.vendors.{row.key}.scan'
         assert module in read, module
         assert scanner.scan.__module__ == scanner.add_options.__module__ == module, row.key
 
@@ -206,17 +259,18 @@ def test_relative_imports_resolve_to_the_module_they_name(tmp_path):
     package = tmp_path / 'stepper_drivers'
     (package / 'protocol').mkdir(parents=True)
     path = package / 'protocol' / 'x.py'
-    path.write_text('from ..vendors import vector_step_map as vm\nfrom . import cia301\n'
-                    'def f():\n    from .. import node\n')
-    assert imports(path, package) == {'stepper_drivers.vendors.vector_step_map',
-                                      'stepper_drivers.protocol.cia301', 'stepper_drivers.node'}
+    path.write_text('from ..vendors.vector_step import regmap as vm\nfrom . import cia301\n'
+                    'def f():\n    from ..ros import node\n')
+    assert imports(path, package) == {'stepper_drivers.vendors.vector_step.regmap',
+                                      'stepper_drivers.protocol.cia301',
+                                      'stepper_drivers.ros.node'}
 
 
 def test_the_node_layer_finds_the_installed_eds_the_vendor_names():
-    """vendors/vector_step.py names its EDS relative to the share directory (no ROS there);
-    entry_points.share_files (the node layer) resolves it through ament's package index."""
-    from stepper_drivers.entry_points import share_files
-    from stepper_drivers.params import BusConfig
+    """vendors/vector_step names its EDS relative to the share directory (no ROS there);
+    ros/entry_points.share_files resolves it through ament's package index."""
+    from stepper_drivers.ros.entry_points import share_files
+    from stepper_drivers.ros.params import BusConfig
     from stepper_drivers.vendors import vector_step
 
     files = vector_step.VENDOR.share_files

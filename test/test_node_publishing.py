@@ -11,8 +11,7 @@ from __future__ import annotations
 import time
 
 import pytest
-from stepper_drivers.vendor_table import KEYS
-
+from stepper_drivers.vendors.table import KEYS
 from test_param_rules import make_node, ros  # noqa: F401 - ros is the fixture make_node needs
 
 

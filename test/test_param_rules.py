@@ -19,7 +19,7 @@ import sys
 
 import pytest
 from rosharness import CONFIG
-from stepper_drivers.vendor_table import BY_KEY, KEYS
+from stepper_drivers.vendors.table import BY_KEY, KEYS
 
 # vendor, parameter, a value its rules refuse, a value they take, words of the refusal
 CASES = [
@@ -48,8 +48,8 @@ def make_node(key: str, *ros_args: str, vendor=None):
     """The DriveNode of `key` with config/<key>.yaml and more ROS arguments; the node layer uses
     rclpy's default context, so the args are given to it as to rclpy.init."""
     import rclpy
-    from stepper_drivers.node import DriveNode
-    from stepper_drivers.params import declare_all
+    from stepper_drivers.ros.node import DriveNode
+    from stepper_drivers.ros.params import declare_all
     module = importlib.import_module(BY_KEY[key].module)
     vendor = vendor or module.VENDOR
     args = ['test', '--ros-args', '--params-file', str(CONFIG / f'{key}.yaml'), *ros_args]
@@ -66,7 +66,7 @@ def ros_value(value) -> str:
 @pytest.mark.parametrize('key, name, bad, good, words', CASES)
 def test_run_time_change_is_refused_by_the_start_up_rule(ros, key, name, bad, good, words):
     from rclpy.parameter import Parameter
-    from stepper_drivers.params import ParameterError
+    from stepper_drivers.ros.params import ParameterError
     with pytest.raises(ParameterError) as start_up:
         make_node(key, '-p', f'{name}:={ros_value(bad)}')
     assert words in str(start_up.value), str(start_up.value)
@@ -135,7 +135,7 @@ def test_the_x_mind_k_rules_refuse_one_address_twice_from_the_parameters_alone()
 @pytest.mark.parametrize('key', KEYS)
 def test_the_rules_of_a_config_file_are_met_and_pure(ros, key):
     """Every shipped params file meets validate(); validate changes nothing it is given."""
-    from stepper_drivers.params import current_values, validate
+    from stepper_drivers.ros.params import current_values, validate
     module = importlib.import_module(BY_KEY[key].module)
     node = make_node(key)
     try:
@@ -149,22 +149,24 @@ def test_the_rules_of_a_config_file_are_met_and_pure(ros, key):
 
 def test_vendor_modules_and_their_rules_need_no_rclpy_nor_ament():
     code = ('import sys\n'
-            'from stepper_drivers import vendor_table, param_rules\n'
+            'from stepper_drivers.contract import param_rules\n'
+            'from stepper_drivers.vendors import table as vendor_table\n'
             'import importlib\n'
             'for row in vendor_table.ROWS:\n'
             '    m = importlib.import_module(row.module)\n'
             '    assert callable(m.validate), row.key\n'
             "assert 'rclpy' not in sys.modules, 'rclpy imported'\n"
             "assert 'ament_index_python' not in sys.modules, 'ament_index_python imported'\n"
-            'from stepper_drivers.vendors import vector_step_map\n'
-            'vector_step_map.eds_path()\n'
+            'from stepper_drivers.vendors.vector_step import regmap\n'
+            'regmap.eds_path()\n'
             "assert 'ament_index_python' not in sys.modules, 'eds_path imported ament'\n")
     subprocess.run([sys.executable, '-c', code], check=True, timeout=60)
 
 
 def test_params_uses_no_private_rclpy_parameter_state():
     import inspect
-    from stepper_drivers import node, params
+
+    from stepper_drivers.ros import node, params
     for module in (params, node):
         source = inspect.getsource(module)
         assert '_parameter_overrides' not in source.replace('`Node._parameter_overrides`', '')

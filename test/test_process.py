@@ -19,7 +19,7 @@ from stepper_sim.harness import wait_for
 
 CHILD = textwrap.dedent("""
     import sys, threading
-    from stepper_drivers.process import block_shutdown_signals, spin_node
+    from stepper_drivers.ros.process import block_shutdown_signals, spin_node
     block_shutdown_signals()
     import rclpy
     from rclpy.signals import SignalHandlerOptions

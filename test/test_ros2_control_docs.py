@@ -17,7 +17,7 @@ The page's code blocks are parsed, not searched as text:
   constraint keys) and MoveIt's controllers (a JTC of that file or a node's own action, with its
   joints);
 - every node parameter the page names (`drives.<drive>.x`, `name: value`, a bare name that looks
-  like one) exists: stepper_drivers.params and the vendor modules' declarations, and
+  like one) exists: stepper_drivers.ros.params and the vendor modules' declarations, and
   docs/interface.md's generated tables list it.
 `test_a_wrong_name_fails` edits copies of the page (a joint name, a node name, a namespace, the
 plugin, a parameter) and checks that each is caught.
@@ -32,9 +32,9 @@ import re
 import xml.etree.ElementTree as ET
 
 import pytest
+from stepper_drivers.ros.params import BUS_PARAMS, DRIVE_PARAMS
+from stepper_drivers.vendors.table import BY_KEY, KEYS
 import yaml
-from stepper_drivers.params import BUS_PARAMS, DRIVE_PARAMS
-from stepper_drivers.vendor_table import BY_KEY, KEYS
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 DOC = ROOT / 'docs' / 'ros2_control.md'

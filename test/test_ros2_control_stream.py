@@ -30,9 +30,14 @@ import time
 
 import pytest
 from rosharness import MIDDLEWARE_S, Track, wait_for, watchdog_bound_s
-
-from test_safety_ros import (DECEL_RAD_S2, RATE_HZ, SIM_TICK_S, STEPS_PER_RAD, TRANSACTION_S,
-                             make_bench)
+from test_safety_ros import (
+    DECEL_RAD_S2,
+    RATE_HZ,
+    SIM_TICK_S,
+    STEPS_PER_RAD,
+    TRANSACTION_S,
+    make_bench,
+)
 
 UPDATE_HZ = 100.0             # controller_manager's update_rate
 TIMEOUT_S = 0.5               # command_timeout_s of every config/<vendor>.yaml

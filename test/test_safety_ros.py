@@ -25,7 +25,6 @@ import time
 import pytest
 from rosharness import MIDDLEWARE_S, Track, wait_for, watchdog_bound_s
 from std_msgs.msg import Float64
-
 import test_rd4_ros
 import test_vector_step_ros
 import test_xmind_k_ros

@@ -14,8 +14,8 @@ import pytest
 from rosharness import CONFIG, executable, free_port
 from std_msgs.msg import Float64
 from std_srvs.srv import SetBool
-from stepper_sim.socketcand_broker import SocketcandBroker
 from stepper_drivers_msgs.msg import DriveStatus
+from stepper_sim.core.socketcand_broker import SocketcandBroker
 import yaml
 
 FAST_DISCOVERY = {'FASTRTPS_DEFAULT_PROFILES_FILE': str(CONFIG / 'fastdds_fast_discovery.xml')}
@@ -108,7 +108,7 @@ def test_only_a_scan_command_line_loads_the_vendor_modules(argv, loaded):
                        timeout=60.0, check=True)
     modules = r.stdout.strip()
     if loaded:
-        assert all(f"'stepper_drivers.vendors.{key}_scan'" in modules for key in loaded), modules
+        assert all(f"'stepper_drivers.vendors.{key}.scan'" in modules for key in loaded), modules
     else:
         assert modules == '[]', modules
 

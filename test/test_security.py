@@ -8,10 +8,10 @@ import re
 import xml.etree.ElementTree as ET
 
 import pytest
-from rosharness import CONFIG, DriveBench, executable, free_port, ROOT
-from stepper_drivers import dds_security
-from stepper_drivers.params import DRIVE_PARAMS
-from stepper_drivers.vendor_table import KEYS
+from rosharness import CONFIG, ROOT, DriveBench, executable, free_port
+from stepper_drivers.ros import dds_security
+from stepper_drivers.ros.params import DRIVE_PARAMS
+from stepper_drivers.vendors.table import KEYS
 import yaml
 
 EXIT_TIMEOUT_S = 20.0

@@ -7,7 +7,7 @@ import re
 
 import pytest
 from rosharness import CONFIG, executable
-from stepper_drivers.vendor_table import KEYS
+from stepper_drivers.vendors.table import KEYS
 
 VENDORS = KEYS
 EXECUTABLES = [('stepper_drivers', f'{v}_node') for v in VENDORS] + \

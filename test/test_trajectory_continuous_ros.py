@@ -16,10 +16,19 @@ import time
 from action_msgs.msg import GoalStatus
 from control_msgs.action import FollowJointTrajectory
 import pytest
-from rosharness import Procs, RosClient, Track, TrajectoryGoal as Client
-from test_follow_joint_trajectory_ros import (EXECUTION_MARGIN_S, EXECUTION_SCALING, Rd4Shipped,
-                                              duration, logged, log_lines, quintic, rejected,
-                                              set_params)
+from rosharness import Procs, RosClient, Track
+from rosharness import TrajectoryGoal as Client
+from test_follow_joint_trajectory_ros import (
+    EXECUTION_MARGIN_S,
+    EXECUTION_SCALING,
+    Rd4Shipped,
+    duration,
+    log_lines,
+    logged,
+    quintic,
+    rejected,
+    set_params,
+)
 from trajectory_msgs.msg import JointTrajectoryPoint
 
 JOINTS = ('rd4_joint1', 'rd4_joint2')

@@ -13,13 +13,14 @@ import sys
 import threading
 import time
 
-import pytest
 from action_msgs.msg import GoalStatus
 from builtin_interfaces.msg import Duration
 from control_msgs.action import FollowJointTrajectory
 from control_msgs.msg import JointTolerance
 from lifecycle_msgs.msg import Transition
-from rosharness import MIDDLEWARE_S, ROOT, Track, TrajectoryGoal as Goal, wait_for
+import pytest
+from rosharness import MIDDLEWARE_S, ROOT, Track, wait_for
+from rosharness import TrajectoryGoal as Goal
 from stepper_drivers_msgs.msg import DriveStatus
 from test_follow_joint_trajectory_ros import log_lines, logged, rejected
 from test_lifecycle_ros import XplusLifecycle

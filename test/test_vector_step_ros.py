@@ -14,13 +14,21 @@ import time
 import can
 from diagnostic_msgs.msg import DiagnosticStatus
 import pytest
-from rosharness import (MIDDLEWARE_S, DriveBench, Procs, RosClient, Track, bad_parameter_output,
-                        wait_for, watchdog_bound_s)
+from rosharness import (
+    MIDDLEWARE_S,
+    DriveBench,
+    Procs,
+    RosClient,
+    Track,
+    bad_parameter_output,
+    wait_for,
+    watchdog_bound_s,
+)
 from std_srvs.srv import SetBool
-from stepper_sim.socketcand_broker import SocketcandBroker
-from stepper_drivers.params import BUS_PARAMS
+from stepper_drivers.ros.params import BUS_PARAMS
 from stepper_drivers_msgs.msg import DriveStatus
 from stepper_drivers_msgs.srv import ReadRegister, WriteRegister
+from stepper_sim.core.socketcand_broker import SocketcandBroker
 import yaml
 
 STEPS_PER_RAD = 3200 / (2 * math.pi)

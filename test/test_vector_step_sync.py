@@ -26,7 +26,7 @@ import time
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 import pytest
-from rosharness import CONFIG, DriveBench, Procs, Proc, RosClient, executable, wait_for
+from rosharness import CONFIG, DriveBench, Proc, Procs, RosClient, executable, wait_for
 from stepper_sim.harness import SyncListener
 import yaml
 

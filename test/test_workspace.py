@@ -10,8 +10,8 @@ import sysconfig
 import xml.etree.ElementTree as ET
 
 import pytest
-import yaml
 from rosharness import INSTALL, ROOT
+import yaml
 
 PACKAGES = ('stepper_drivers_msgs', 'stepper_drivers', 'stepper_sim')
 # ros_interface.md: the executables every ROS install must find with `ros2 run`

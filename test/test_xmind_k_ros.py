@@ -319,10 +319,10 @@ def test_a_trajectory_with_broadcast_start_starts_its_joints_by_one_broadcast_pe
     found no other address answering, each segment of a follow_joint_trajectory goal of the
     three joints starts them by one broadcast 99PS (the simulator logs each broadcast string it
     heard), and they end where the goal says."""
+    from builtin_interfaces.msg import Duration
     from control_msgs.action import FollowJointTrajectory
     from rosharness import TrajectoryGoal
     from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
-    from builtin_interfaces.msg import Duration
     b = Bench(procs, ros, tmp_path, line_timing=True, node_args=(
         '-p', 'broadcast_start:=true', '-p', 'broadcast_probe_wait_ms:=10',
         '-p', 'timeout_s:=0.06'))       # the probe: 45 silent addresses of 10 ms + this each

@@ -12,8 +12,17 @@ import time
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 import pytest
-from rosharness import (CONFIG, MIDDLEWARE_S, DriveBench, Track, bad_parameter_output,
-                        executable, free_port, wait_for, watchdog_bound_s)
+from rosharness import (
+    CONFIG,
+    MIDDLEWARE_S,
+    DriveBench,
+    Track,
+    bad_parameter_output,
+    executable,
+    free_port,
+    wait_for,
+    watchdog_bound_s,
+)
 from std_msgs.msg import Float64
 from std_srvs.srv import SetBool
 from stepper_drivers_msgs.srv import ReadRegister, WriteRegister

@@ -1,6 +1,6 @@
 from glob import glob
-from os.path import isfile
 import os
+from os.path import isfile
 import runpy
 
 from setuptools import find_packages, setup
@@ -8,7 +8,7 @@ from setuptools import find_packages, setup
 package_name = 'stepper_drivers'
 HERE = os.path.dirname(os.path.realpath(__file__))
 # The vendor table, read as a file: setup.py imports neither the package nor rclpy.
-ROWS = runpy.run_path(os.path.join(HERE, 'stepper_drivers', 'vendor_table.py'))['ROWS']
+ROWS = runpy.run_path(os.path.join(HERE, 'stepper_drivers', 'vendors', 'table.py'))['ROWS']
 
 # Two console scripts per vendor (<key>_node, <key>_lifecycle_node), both entry_points.main (the
 # name it is started under picks the vendor), and stepperctl.
@@ -32,7 +32,7 @@ setup(
     description='ROS 2 nodes for four stepper drive product lines',
     license='Apache-2.0',
     entry_points={
-        'console_scripts': [f'{n} = stepper_drivers.entry_points:main' for n in NODES]
-        + ['stepperctl = stepper_drivers.entry_points:stepperctl'],
+        'console_scripts': [f'{n} = stepper_drivers.ros.entry_points:main' for n in NODES]
+        + ['stepperctl = stepper_drivers.cli.main:stepperctl'],
     },
 )

@@ -7,13 +7,13 @@ from setuptools import find_packages, setup
 package_name = 'stepper_sim'
 HERE = os.path.dirname(os.path.realpath(__file__))
 # The vendor table of stepper_drivers, read as a file (no import of either package, no rclpy).
-ROWS = runpy.run_path(os.path.join(HERE, '..', 'stepper_drivers', 'stepper_drivers',
-                                   'vendor_table.py'))['ROWS']
+ROWS = runpy.run_path(os.path.join(HERE, '..', 'stepper_drivers', 'stepper_drivers', 'vendors',
+                                   'table.py'))['ROWS']
 
 # One console script per simulator: '<key>_sim = <row.simulator>', and one per helper a
-# simulator needs (row.sim_helpers, e.g. the CAN broker): '<name> = stepper_sim.<name>:main'.
+# simulator needs (row.sim_helpers, e.g. the CAN broker): '<name> = stepper_sim.core.<name>:main'.
 SIMS = {row.sim: row.simulator for row in ROWS}
-SIMS.update({h: f'stepper_sim.{h}:main' for row in ROWS for h, *_args in row.sim_helpers})
+SIMS.update({h: f'stepper_sim.core.{h}:main' for row in ROWS for h, *_args in row.sim_helpers})
 
 setup(
     name=package_name,

@@ -12,33 +12,33 @@ import os
 
 _TRIGGER = os.environ.get('STEPPER_TEST_OWNER_FAULT')
 if _TRIGGER:
-    from stepper_drivers import supervisor
+    from stepper_drivers import owner
 
-    _work_once = supervisor.BusSupervisor._work_once
+    _work_once = owner.BusOwner._work_once
 
     def _failing_work_once(self):
         if os.path.exists(_TRIGGER):
             raise RuntimeError(f'injected owner fault ({_TRIGGER} exists)')
         return _work_once(self)
 
-    supervisor.BusSupervisor._work_once = _failing_work_once
+    owner.BusOwner._work_once = _failing_work_once
 
 _JOB_TIMEOUT_S = os.environ.get('STEPPER_TEST_JOB_TIMEOUT_S')
 if _JOB_TIMEOUT_S:
-    from stepper_drivers import node_services
+    from stepper_drivers.ros import services as node_services
 
     node_services.JOB_TIMEOUT_S = float(_JOB_TIMEOUT_S)
 
 _HELD_SAVE = os.environ.get('STEPPER_TEST_HELD_SAVE')
 if _HELD_SAVE:
-    from stepper_drivers import supervisor
-    from stepper_drivers.commands import Command
+    from stepper_drivers import owner
+    from stepper_drivers.owner.commands import Command
 
     _maintenance = Command.maintenance.__func__
 
     def _held(fn):
         def steps():
-            result = yield from supervisor._steps(fn())
+            result = yield from owner._steps(fn())
             open(os.path.join(_HELD_SAVE, 'started'), 'w').close()
             while not os.path.exists(os.path.join(_HELD_SAVE, 'release')):
                 yield 0.05

@@ -12,8 +12,9 @@ from ament_index_python.packages import get_package_share_directory
 from launch import LaunchDescription
 from launch.actions import GroupAction, IncludeLaunchDescription
 from launch.launch_description_sources import PythonLaunchDescriptionSource
+
 # The vendor table is plain data (no rclpy, no vendor module): safe to import in a launch file.
-from stepper_drivers.vendor_table import KEYS
+from stepper_drivers.vendors.table import KEYS
 
 
 def include(vendor):

@@ -22,8 +22,9 @@ from launch.actions import DeclareLaunchArgument, ExecuteProcess, OpaqueFunction
 from launch.conditions import IfCondition, UnlessCondition
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import LifecycleNode, Node
+
 # The vendor table is plain data (no rclpy, no vendor module): safe to import in a launch file.
-from stepper_drivers.vendor_table import BY_KEY, KEYS
+from stepper_drivers.vendors.table import BY_KEY, KEYS
 
 
 def _vendor_of_file_name() -> str:

@@ -19,11 +19,10 @@ import time
 
 import can
 import pytest
-from stepper_drivers.drive import LinkError
+from stepper_drivers.contract.drive import LinkError
 from stepper_drivers.protocol import canopen_link, canopen_producers
 from stepper_drivers.protocol.canopen_link import CanBus
-from stepper_sim.harness import (Proc, SyncListener, executable, fifo_allowed, max_gap,
-                                 wait_for)
+from stepper_sim.harness import Proc, SyncListener, executable, fifo_allowed, max_gap, wait_for
 
 PERIOD_S = 0.05                # the SYNC period of these buses
 SYNC_TIMEOUT_S = 0.5           # the drives' 0x1006 time (sync_timeout_s, the shipped default)

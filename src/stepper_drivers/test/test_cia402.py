@@ -1,4 +1,4 @@
-"""CiA 402 tables and Cia402Device, checked against the X-PLUS MT manual's T13/T14 and quoted
+"""CiA 402 tables and Cia402Walker, checked against the X-PLUS MT manual's T13/T14 and quoted
 status words.
 
 The scripted responder below is written from the manual (§12 CW sequence, transitions 2-16),
@@ -8,9 +8,9 @@ independently of cia402's own tables: a map (statusword, controlword) -> next st
 import time
 
 import pytest
-
-from stepper_drivers import cia402, cia402_modes
-from stepper_drivers.drive import DriveError, HomingState, State, complete
+from stepper_drivers.contract.drive import DriveError, HomingState, State, complete
+from stepper_drivers.profiles.cia402 import modes as cia402_modes
+from stepper_drivers.profiles.cia402 import state_machine as cia402
 
 SOD, RTSO, SO, OE = (State.SWITCH_ON_DISABLED, State.READY_TO_SWITCH_ON, State.SWITCHED_ON,
                      State.OPERATION_ENABLED)
@@ -155,7 +155,7 @@ def test_homing_state(word, homing):
     assert cia402.homing_state(word) == homing
 
 
-# --- Cia402Device against a scripted responder -------------------------------------------------
+# --- Cia402Walker against a scripted responder -------------------------------------------------
 HV = {  # (statusword, controlword) -> next statusword; HV present (§12 CW sequence)
     (0x0270, 0x06): 0x0231,
     (0x0231, 0x07): 0x0233, (0x0231, 0x0F): 0x0637, (0x0231, 0x00): 0x0270,
@@ -198,7 +198,7 @@ class ScriptedDrive:
 
 
 def _device(drive, delay=0.001):
-    return cia402.Cia402Device(drive.read, drive.write, min_delay_s=delay, name='axis1')
+    return cia402.Cia402Walker(drive.read, drive.write, min_delay_s=delay, name='axis1')
 
 
 @pytest.mark.parametrize('start,cws', [

@@ -1,4 +1,4 @@
-"""Follower (follow.py) against the X-PLUS MT simulator through a real BusSupervisor, no ROS:
+"""Follower (follow.py) against the X-PLUS MT simulator through a real BusOwner, no ROS:
 axes that start together and arrive together, replaced, canceled and empty trajectories, a
 segment that fails, tolerances. Bounds come from the settings: the poll period and one
 transaction."""
@@ -7,15 +7,21 @@ import dataclasses
 import time
 
 import pytest
-
-from stepper_drivers.commands import Command
-from stepper_drivers.follow import (INVALID_GOAL, OLD_HEADER_TIMESTAMP, REPLACED, SUCCESSFUL,
-                                    Axis, Follower, GoalError)
-from stepper_drivers.supervisor import COMMAND, BusSupervisor
-from stepper_sim.harness import wait_for
-from stepper_drivers.trajectory import JointLimits, TrajectoryError, build
+from stepper_drivers.motion.follow import (
+    INVALID_GOAL,
+    OLD_HEADER_TIMESTAMP,
+    REPLACED,
+    SUCCESSFUL,
+    Axis,
+    Follower,
+    GoalError,
+)
+from stepper_drivers.motion.trajectory import JointLimits, TrajectoryError, build
+from stepper_drivers.owner import COMMAND, BusOwner
+from stepper_drivers.owner.commands import Command
 from stepper_drivers.vendors.xplus_mt import VENDOR
-from stepper_sim.xplus_mt_sim import XplusMtDriveConfig, XplusMtSim
+from stepper_sim.harness import wait_for
+from stepper_sim.xplus_mt.sim import XplusMtDriveConfig, XplusMtSim
 
 RATE_HZ = 50.0
 POLL_S = 1.0 / RATE_HZ
@@ -36,23 +42,23 @@ def rig(tmp_path):
     drives = {f'axis{u}': VENDOR.make_drive(bus, f'axis{u}', {
         'unit_id': u, 'word_order': 'little', 'steps_per_rev': 12800, 'joint_name': f'j{u}'})
         for u in (1, 2)}
-    sup = BusSupervisor(bus, drives, {'publish_rate_hz': RATE_HZ, 'command_timeout_s': 0.5,
+    bus_owner = BusOwner(bus, drives, {'publish_rate_hz': RATE_HZ, 'command_timeout_s': 0.5,
                                       'reconnect_period_s': 0.2})
-    sup.start()
+    bus_owner.start()
     try:
-        wait_for(lambda: all(s.connected and s.polls for s in sup.slots.values()), 5.0,
+        wait_for(lambda: all(s.connected and s.polls for s in bus_owner.slots.values()), 5.0,
                  'both drives connected')
         for name, d in drives.items():
-            sup.submit(name, Command(COMMAND, d.enable, 'enable')).result(5.0)
+            bus_owner.submit(name, Command(COMMAND, d.enable, 'enable')).result(5.0)
         # The drive takes its first set point max(200 ms, register 1096) after current-on
         # (manual §12; the driver waits for it): trajectories here start after that.
         time.sleep(0.25)
         limits = dataclasses.replace(LIMITS, start_stop_steps_s=drives['axis1'].start_stop_steps_s)
-        axes = {f'j{u}': Axis(f'j{u}', f'axis{u}', sup, drives[f'axis{u}'], limits)
+        axes = {f'j{u}': Axis(f'j{u}', f'axis{u}', bus_owner, drives[f'axis{u}'], limits)
                 for u in (1, 2)}
-        yield sim, sup, Follower(axes)
+        yield sim, bus_owner, Follower(axes)
     finally:
-        sup.shutdown(1.0, disable=drives)
+        bus_owner.shutdown(1.0, disable=drives)
         sim.stop()
 
 
@@ -80,7 +86,7 @@ def arrival_times(sim, run, times, targets_by_point, timeout_s):
 
 
 def test_axes_start_together_and_arrive_together_at_every_waypoint(rig):
-    sim, sup, follower = rig
+    sim, bus_owner, follower = rig
     traj = build(JOINTS, [0.5, 1.0], [[8000, 2000], [4000, 6000]], known=JOINTS)
     run = follower.follow(traj)
     targets = [{'j1': (8000, 8000), 'j2': (2000, 2000)}, {'j1': (4000, 4000), 'j2': (6000, 4000)}]
@@ -94,7 +100,7 @@ def test_axes_start_together_and_arrive_together_at_every_waypoint(rig):
 
 
 def test_an_impossible_segment_is_refused_before_anything_moves(rig):
-    sim, sup, follower = rig
+    sim, bus_owner, follower = rig
     before = {j: true_steps(sim, j) for j in JOINTS}
     # 1e6 steps/s on average: the X-PLUS MT retargets on the way, so its joints' segments are
     # velocity-continuous and bounded by max_velocity
@@ -106,11 +112,11 @@ def test_an_impossible_segment_is_refused_before_anything_moves(rig):
 
 
 def test_a_newer_trajectory_replaces_the_rest_of_the_old_from_its_start(rig):
-    sim, sup, follower = rig
+    sim, bus_owner, follower = rig
     old = follower.follow(build(JOINTS, [0.4, 2.0], [[4000, 4000], [40_000, 40_000]],
                                 known=JOINTS))
     wait_for(lambda: time.monotonic() - old.start_t > 0.45, 2.0, 'the first point')
-    seen, seen_t = sup.slots['axis2'].sample          # j2 as last polled before the take-over
+    seen, seen_t = bus_owner.slots['axis2'].sample     # j2 as last polled before the take-over
     # (0.8 s: j1 passes its first point at speed, about 8600 steps out at the take-over)
     new = follower.follow(build(['j1'], [0.8], [[0]], known=JOINTS))
     asked_t = time.monotonic()
@@ -125,7 +131,7 @@ def test_a_newer_trajectory_replaces_the_rest_of_the_old_from_its_start(rig):
     # fast as it really went (a late axis passes its point at speed, the next segment's move
     # taken on the way: up to the move's profile velocity, ahead of the plan), on the move's
     # deceleration; it never goes to 40000
-    wait_for(lambda: not sup.slots['axis2'].state.moving, 2.0, 'j2 at a standstill')
+    wait_for(lambda: not bus_owner.slots['axis2'].state.moving, 2.0, 'j2 at a standstill')
     drive = sim.drives['axis2']
     v_max = drive.register('PROFILE_VELOCITY')
     brake = v_max ** 2 / (2 * drive.register('PROFILE_DECELERATION'))
@@ -135,7 +141,7 @@ def test_a_newer_trajectory_replaces_the_rest_of_the_old_from_its_start(rig):
 
 
 def test_an_empty_trajectory_stops_the_running_one(rig):
-    sim, sup, follower = rig
+    sim, bus_owner, follower = rig
     run = follower.follow(build(JOINTS, [2.0], [[40_000, -40_000]], known=JOINTS))
     wait_for(lambda: abs(true_steps(sim, 'j1')) > 2000, 2.0, 'motion')
     follower.stop('empty trajectory')
@@ -144,7 +150,7 @@ def test_an_empty_trajectory_stops_the_running_one(rig):
     # success by MoveIt's log)
     assert (outcome.status, outcome.code, outcome.text) == (
         'aborted', INVALID_GOAL, 'empty trajectory')
-    wait_for(lambda: not any(s.state.moving for s in sup.slots.values()), 2.0, 'standstill')
+    wait_for(lambda: not any(s.state.moving for s in bus_owner.slots.values()), 2.0, 'standstill')
     assert abs(true_steps(sim, 'j1')) < 30_000
 
 
@@ -154,8 +160,8 @@ def test_a_cancel_stops_the_joints_before_it_returns(rig):
     and the stops before it (two transactions each: statusword, controlword), not at the
     run's next check; the run ends canceled with SUCCESSFUL, JointTrajectoryController's
     canceled result."""
-    from stepper_drivers.cia402 import CW_BIT_HALT
-    sim, sup, follower = rig
+    from stepper_drivers.profiles.cia402.state_machine import CW_BIT_HALT
+    sim, bus_owner, follower = rig
     run = follower.follow(build(JOINTS, [2.0], [[40_000, -40_000]], known=JOINTS))
     wait_for(lambda: abs(true_steps(sim, 'j1')) > 2000, 2.0, 'motion')
     t0 = time.monotonic()
@@ -170,13 +176,13 @@ def test_a_cancel_stops_the_joints_before_it_returns(rig):
     assert halted.get('axis2', 1.0) <= 5 * TRANSACTION_S, halted
     outcome = run.done.result(2.0)
     assert (outcome.status, outcome.code) == ('canceled', SUCCESSFUL), outcome
-    wait_for(lambda: not any(s.state.moving for s in sup.slots.values()), 2.0, 'standstill')
+    wait_for(lambda: not any(s.state.moving for s in bus_owner.slots.values()), 2.0, 'standstill')
     assert abs(true_steps(sim, 'j1')) < 30_000
 
 
 def test_a_trajectory_that_ended_is_refused_with_its_code(rig):
     """The result code comes with the refusal, set where the cause is found."""
-    sim, sup, follower = rig
+    sim, bus_owner, follower = rig
     with pytest.raises(GoalError, match='ended') as refused:
         follower.follow(build(['j1'], [0.5], [[1000]], known=JOINTS),
                         start_t=time.monotonic() - 1.0)
@@ -188,8 +194,8 @@ def test_a_move_sent_late_catches_up_within_the_joints_limits():
     first one's on the shared line, with the larger distance; it kept its planned profile and
     arrived 114 ms late. Now it runs faster (within max_velocity and max_acceleration) for the
     time left."""
-    from stepper_drivers.follow import Run
-    from stepper_drivers.trajectory import plan as plan_
+    from stepper_drivers.motion.follow import Run
+    from stepper_drivers.motion.trajectory import plan as plan_
     lim = JointLimits(-1e6, 1e6, 1600.0, 10_000.0)
     traj = build(['a', 'b'], [1.5], [[250, 250]], known=['a', 'b'])
     (seg,) = plan_(traj, {'a': 0.0, 'b': 0.0}, {'a': lim, 'b': lim})
@@ -205,14 +211,14 @@ def test_a_move_sent_late_catches_up_within_the_joints_limits():
 def test_a_path_tolerance_violated_stops_the_axes_and_names_the_joint(rig):
     """1 step of path tolerance while j1 runs at 16000 steps/s: the drive follows the plan within
     a few transactions, more than 1 step off; the run aborts and the axes stop short."""
-    from stepper_drivers.follow import PATH_TOLERANCE_VIOLATED, Tolerances
-    sim, sup, follower = rig
+    from stepper_drivers.motion.follow import PATH_TOLERANCE_VIOLATED, Tolerances
+    sim, bus_owner, follower = rig
     run = follower.follow(build(JOINTS, [2.0], [[32_000, 0]], known=JOINTS),
                           tol=Tolerances(path_steps={'j1': 1.0}))
     outcome = run.done.result(2.0)
     assert outcome.code == PATH_TOLERANCE_VIOLATED and outcome.text.startswith('j1: ')
     assert 'path tolerance 1 steps' in outcome.text
-    wait_for(lambda: not any(s.state.moving for s in sup.slots.values()), 2.0, 'standstill')
+    wait_for(lambda: not any(s.state.moving for s in bus_owner.slots.values()), 2.0, 'standstill')
     assert true_steps(sim, 'j1') < 32_000 - 1000
 
 
@@ -222,10 +228,10 @@ def test_the_path_is_checked_against_the_plan_when_the_position_was_true(rig):
     checked against the plan at the time the position was true (the bus owner's state time), so
     a quarter of that (800 steps) holds, the drive following the plan within a few transactions
     (a few hundred steps); against the plan of the moment it was violated at the first polls."""
-    from stepper_drivers.follow import SUCCESSFUL, Tolerances
-    sim, sup, follower = rig
+    from stepper_drivers.motion.follow import SUCCESSFUL, Tolerances
+    sim, bus_owner, follower = rig
     poll_s = 0.2
-    sup.settings['publish_rate_hz'] = 1.0 / poll_s        # read live by the bus owner
+    bus_owner.settings['publish_rate_hz'] = 1.0 / poll_s        # read live by the bus owner
     tol = 16_000 * poll_s / 4
     run = follower.follow(build(JOINTS, [2.0], [[32_000, 0]], known=JOINTS),
                           tol=Tolerances(path_steps={'j1': tol}))
@@ -238,7 +244,7 @@ def test_a_newer_trajectory_sends_its_first_move_at_the_take_over(rig):
     """j1 runs at speed on the old trajectory's move, away from where the old plan had it at the
     take-over: the newer trajectory's move reaches the drive within a poll and a move's
     transactions (about four, and one on the way), not when its first segment ends."""
-    sim, sup, follower = rig
+    sim, bus_owner, follower = rig
     follower.follow(build(['j1'], [2.0], [[40_000]], known=JOINTS))
     wait_for(lambda: true_steps(sim, 'j1') > 10_000, 2.0, 'j1 under way')
     sent = time.monotonic()
@@ -251,17 +257,17 @@ def test_a_newer_trajectory_sends_its_first_move_at_the_take_over(rig):
     assert abs(true_steps(sim, 'j1')) <= 2
 
 
-def busy_owner_until(sup, runs, t_s):
+def busy_owner_until(bus_owner, runs, t_s):
     """A job that keeps axis1's bus owner busy (a slow line) until `t_s` after the start of the
     run that `runs` is given: the run's moves queue behind it."""
     def busy():
         wait_for(lambda: runs, 1.0, 'the run')
         time.sleep(max(0.0, runs[0].start_t + t_s - time.monotonic()))
 
-    sup.submit('axis1', Command(COMMAND, busy, 'a slow job'))
+    bus_owner.submit('axis1', Command(COMMAND, busy, 'a slow job'))
 
 
-def late_first_move(sim, sup, follower, second_steps):
+def late_first_move(sim, bus_owner, follower, second_steps):
     """j1 from 0 to 3000 steps by 0.3 s, then to `second_steps` by 0.6 s; its first move goes
     out late, at 0.27 s, and the 3000 steps in the 0.03 s left would need 100 000 steps/s,
     twice LIMITS' max_velocity: the move keeps its planned profile. Returns the run, where the
@@ -269,7 +275,7 @@ def late_first_move(sim, sup, follower, second_steps):
     and where the axis was then, sampled every millisecond from the simulator."""
     drive = sim.drives['axis1']
     runs = []
-    busy_owner_until(sup, runs, 0.27)
+    busy_owner_until(bus_owner, runs, 0.27)
     runs.append(follower.follow(build(['j1'], [0.3, 0.6], [[3000], [second_steps]],
                                       known=JOINTS)))
     run = runs[0]
@@ -288,10 +294,10 @@ def test_a_late_axis_going_on_the_same_way_passes_its_point_at_speed(rig):
     the joint's segments are velocity-continuous: its first move, sent late (0.27 s), already
     targets the next point (6000) and the axis passes 3000 without slowing down; held at 3000
     (the rest-to-rest segments), it stood there at speed 0 before its second move."""
-    sim, sup, follower = rig
+    sim, bus_owner, follower = rig
     drive = sim.drives['axis1']
     runs = []
-    busy_owner_until(sup, runs, 0.27)
+    busy_owner_until(bus_owner, runs, 0.27)
     runs.append(follower.follow(build(['j1'], [0.3, 0.6], [[3000], [6000]], known=JOINTS)))
     run = runs[0]
     wait_for(lambda: drive._pp_target is not None and drive._pp_target > 0, 1.0, 'first move')
@@ -314,8 +320,8 @@ def test_a_late_axis_that_turns_at_its_point_gets_there_first(rig):
     """Back from 3000 to 0: taken on the way, the turn would cut the point (the X-PLUS MT stops
     and restarts for a target that is not monotonous). The move waits until the axis is
     there (within ARRIVED_FRACTION of its segment)."""
-    sim, sup, follower = rig
-    run, at_point_steps, sent_s, sent_at_steps = late_first_move(sim, sup, follower, 0)
+    sim, bus_owner, follower = rig
+    run, at_point_steps, sent_s, sent_at_steps = late_first_move(sim, bus_owner, follower, 0)
     assert at_point_steps < 3000 - 0.005 * 3000, 'not late at 0.3 s: the test proves nothing'
     # there first (by the follower's snapshot, within ARRIVED_FRACTION: the simulator's true
     # position, sampled here when the target changed, may differ by as much again); or, where
@@ -333,9 +339,9 @@ def test_a_last_move_that_goes_out_after_the_end_is_waited_for(rig):
     started, its move not yet sent. The run waits for the move and a snapshot since, and
     succeeds; judged by the standstill alone, it aborted (goal tolerance) and the move ran
     after the goal had ended."""
-    sim, sup, follower = rig
+    sim, bus_owner, follower = rig
     runs = []
-    busy_owner_until(sup, runs, 0.35)
+    busy_owner_until(bus_owner, runs, 0.35)
     runs.append(follower.follow(build(['j1'], [0.3], [[3000]], known=JOINTS)))
     outcome = runs[0].done.result(3.0)
     assert outcome.status == 'succeeded', outcome

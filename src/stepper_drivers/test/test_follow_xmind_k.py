@@ -1,5 +1,5 @@
 """Follower (follow.py) on the X-MIND K simulator with the timing of a 9600 baud line (§3),
-through a real BusSupervisor, no ROS: the two joints of a trajectory on one line start each
+through a real BusOwner, no ROS: the two joints of a trajectory on one line start each
 segment in one instant by one broadcast 99PS where broadcast_start is true and the line probe
 found no other drive (Bus.group_start, vendors/xmind_k.py start_together), else each with its
 own PS, one transaction apart; a stop of one joint during the start leaves it unstarted and
@@ -12,14 +12,14 @@ strings on the wire (its tap).
 import time
 
 import pytest
-from stepper_drivers.commands import Command
-from stepper_drivers.follow import INVALID_GOAL, Axis, Follower
+from stepper_drivers.motion.follow import INVALID_GOAL, Axis, Follower
+from stepper_drivers.motion.trajectory import JointLimits, build
+from stepper_drivers.owner import BusOwner
+from stepper_drivers.owner.commands import Command
 from stepper_drivers.protocol import xmind_k as xk
-from stepper_drivers.supervisor import BusSupervisor
-from stepper_drivers.trajectory import JointLimits, build
 from stepper_drivers.vendors import xmind_k as v
 from stepper_sim.harness import wait_for
-from stepper_sim.xmind_k_sim import build_line
+from stepper_sim.xmind_k.sim import build_line
 
 CHAR_S = xk.char_time_s()          # 1.04 ms a character at 9600 baud (§3)
 PS_TRANSACTION_S = 13 * CHAR_S     # one PS and its Y: 9 + 4 characters
@@ -49,14 +49,14 @@ class Rig:
                                'port': self.line.link_path})
         self.drives = {n: v.make_drive(self.bus, n, {**BUS, **DRIVE, 'address': a})
                        for n, a in (('a1', 1), ('a2', 2))}
-        self.sup = BusSupervisor(self.bus, self.drives, {
+        self.bus_owner = BusOwner(self.bus, self.drives, {
             'publish_rate_hz': 10.0, 'command_timeout_s': 0.5, 'reconnect_period_s': 0.2})
-        self.sup.start()
-        wait_for(lambda: all(s.connected and s.polls for s in self.sup.slots.values()), 5.0,
+        self.bus_owner.start()
+        wait_for(lambda: all(s.connected and s.polls for s in self.bus_owner.slots.values()), 5.0,
                  'both drives connected')
         for n, d in self.drives.items():
-            self.sup.submit(n, Command.enable(d.enable)).result(5.0)
-        self.follower = Follower({j: Axis(j, n, self.sup, self.drives[n], LIMITS)
+            self.bus_owner.submit(n, Command.enable(d.enable)).result(5.0)
+        self.follower = Follower({j: Axis(j, n, self.bus_owner, self.drives[n], LIMITS)
                                   for j, n in (('j1', 'a1'), ('j2', 'a2'))})
 
     def _tap(self, direction, data, t):
@@ -70,7 +70,7 @@ class Rig:
         """The line probe as the node queues it once a drive connected (node._on_connected)."""
         check = self.bus.group_start_check()
         assert check is not None
-        return self.sup.submit('a1', Command.maintenance(check, 'line probe')).result(10.0)
+        return self.bus_owner.submit('a1', Command.maintenance(check, 'line probe')).result(10.0)
 
     def strings(self, code):
         return [s for _, s in self.wire if s[2:4] == code]
@@ -84,7 +84,7 @@ class Rig:
             return self.line.by_name[name].true_position_steps()
 
     def close(self):
-        self.sup.shutdown(1.0, disable=self.drives)
+        self.bus_owner.shutdown(1.0, disable=self.drives)
         self.line.stop()
 
 

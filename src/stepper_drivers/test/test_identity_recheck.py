@@ -1,5 +1,5 @@
-"""Link noise is not identity: a BusSupervisor (no ROS) over the scripted drives of
-test_supervisor.py and over each vendor's real driver and simulator.
+"""Link noise is not identity: a BusOwner (no ROS) over the scripted drives of
+test_bus_owner.py and over each vendor's real driver and simulator.
 
 - An answer that breaks its protocol's format is a LinkError: the drive is DISCONNECTED and
   reconnected on the normal back-off for as long as the noise lasts, never "not driven".
@@ -14,20 +14,19 @@ import re
 import time
 
 import pytest
-from stepper_drivers import supervisor
-from stepper_drivers.commands import Command
-from stepper_drivers.drive import DriveError, IdentityError, LinkError, State
-from stepper_drivers.supervisor import COMMAND, BusSupervisor, NotConnected
+from stepper_drivers import owner
+from stepper_drivers.contract.drive import DriveError, IdentityError, LinkError, State
+from stepper_drivers.owner import COMMAND, BusOwner, NotConnected
+from stepper_drivers.owner.commands import Command
 from stepper_drivers.vendors import rd4
 from stepper_drivers.vendors import vector_step as vs
 from stepper_drivers.vendors.xplus_mt import VENDOR as XPLUS_MT
+from stepper_sim.core.socketcand_broker import SocketcandBroker
 from stepper_sim.harness import wait_for
-from stepper_sim.rd4_sim import Rd4DriveSim, RtuLine
-from stepper_sim.socketcand_broker import SocketcandBroker
-from stepper_sim.vector_step_sim import NodeConfig, VectorStepSim
-from stepper_sim.xplus_mt_sim import XplusMtDriveConfig, XplusMtSim
-
-from test_supervisor import Line, RATE_HZ, ScriptDrive
+from stepper_sim.rd4.sim import Rd4DriveSim, RtuLine
+from stepper_sim.vector_step.sim import NodeConfig, VectorStepSim
+from stepper_sim.xplus_mt.sim import XplusMtDriveConfig, XplusMtSim
+from test_bus_owner import RATE_HZ, Line, ScriptDrive
 from test_vector_step_drive import params as vector_step_params
 from test_xmind_k_drive import Rig as XmindKRig
 
@@ -37,8 +36,8 @@ AT = r'checked again at \d\d:\d\d:\d\d, in {:g} s; fault_reset checks at once'
 
 @pytest.fixture
 def fast_recheck(monkeypatch):
-    monkeypatch.setattr(supervisor.slot, 'IDENTITY_RECHECK_S', 0.2)
-    monkeypatch.setattr(supervisor.slot, 'IDENTITY_RECHECK_MAX_S', 0.5)
+    monkeypatch.setattr(owner.slot, 'IDENTITY_RECHECK_S', 0.2)
+    monkeypatch.setattr(owner.slot, 'IDENTITY_RECHECK_MAX_S', 0.5)
 
 
 def counted(drive):
@@ -59,16 +58,17 @@ def scripted(error=None, **settings):
     if error is not None:
         drive.fail_always['connect'] = error
     events = []
-    sup = BusSupervisor(line, {'axis1': drive}, {**SETTINGS, **settings},
+    bus_owner = BusOwner(line, {'axis1': drive}, {**SETTINGS, **settings},
                         on_event=lambda *e: events.append(e))
     calls = counted(drive)
-    sup.start()
-    return sup, drive, sup.slots['axis1'], calls, events
+    bus_owner.start()
+    return bus_owner, drive, bus_owner.slots['axis1'], calls, events
 
 
-# ----------------------------------------------------------------------- the supervisor
+# ----------------------------------------------------------------------- the bus owner
 def test_an_identity_error_is_not_driven_and_checked_again_for_ever(fast_recheck):
-    sup, drive, slot, calls, events = scripted(IdentityError('1018:02 reads 0x1234: not an X'))
+    bus_owner, drive, slot, calls, events = scripted(
+        IdentityError('1018:02 reads 0x1234: not an X'))
     try:
         wait_for(lambda: slot.not_driven, 2.0, 'not driven')
         assert re.search(r'^1018:02 reads 0x1234: not an X \(' + AT.format(0.2) + r'\)$',
@@ -76,7 +76,7 @@ def test_an_identity_error_is_not_driven_and_checked_again_for_ever(fast_recheck
         assert not slot.connected and slot.state.state == State.DISCONNECTED
         # never commanded meanwhile
         with pytest.raises(NotConnected):
-            sup.submit('axis1', Command(COMMAND, lambda: drive.move_to(5, None),
+            bus_owner.submit('axis1', Command(COMMAND, lambda: drive.move_to(5, None),
                                         'move')).result(1.0)
         wait_for(lambda: len(calls) >= 5, 5.0, 'five identity checks')
         gaps = [b - a for a, b in zip(calls, calls[1:])]
@@ -84,18 +84,18 @@ def test_an_identity_error_is_not_driven_and_checked_again_for_ever(fast_recheck
         assert gaps[1] == pytest.approx(0.4, abs=0.15), gaps
         assert all(g == pytest.approx(0.5, abs=0.15) for g in gaps[2:4]), gaps   # the cap
         assert re.search(AT.format(0.5), slot.not_driven), slot.not_driven
-        assert not sup.bus.calls('axis1', 'move_to')
+        assert not bus_owner.bus.calls('axis1', 'move_to')
         drive.fail_always.clear()                            # the right device again
         wait_for(lambda: slot.connected and slot.polls, 2.0, 'driven again')
         assert slot.not_driven == '' and slot.last_error == ''
         assert any('the identity matches again: driven' in e[2] for e in events), events
     finally:
-        sup.shutdown(0.5)
+        bus_owner.shutdown(0.5)
 
 
 def test_noise_is_retried_on_the_reconnect_back_off_and_never_makes_a_drive_not_driven():
-    sup, drive, slot, calls, _ = scripted(LinkError("'03QS,RS' was answered b'03?S,RS,D2\\r'"),
-                                          reconnect_period_s=0.02)
+    bus_owner, drive, slot, calls, _ = scripted(
+        LinkError("'03QS,RS' was answered b'03?S,RS,D2\\r'"), reconnect_period_s=0.02)
     try:
         wait_for(lambda: len(calls) >= 8, 5.0, 'eight connect attempts')   # and more to come
         assert slot.not_driven == '' and not slot.connected
@@ -104,46 +104,46 @@ def test_noise_is_retried_on_the_reconnect_back_off_and_never_makes_a_drive_not_
         drive.fail_always.clear()
         wait_for(lambda: slot.connected, 1.0, 'connected')
     finally:
-        sup.shutdown(0.5)
+        bus_owner.shutdown(0.5)
 
 
 def test_recheck_connects_at_once_and_says_what_it_found(monkeypatch):
-    monkeypatch.setattr(supervisor.slot, 'IDENTITY_RECHECK_S', 60.0)
-    sup, drive, slot, calls, _ = scripted(IdentityError('HW Version reads RD5'))
+    monkeypatch.setattr(owner.slot, 'IDENTITY_RECHECK_S', 60.0)
+    bus_owner, drive, slot, calls, _ = scripted(IdentityError('HW Version reads RD5'))
     try:
         wait_for(lambda: slot.not_driven, 2.0, 'not driven')
         assert re.search(AT.format(60), slot.not_driven)
         with pytest.raises(IdentityError, match='RD5'):
-            sup.recheck('axis1').result(2.0)             # checked now, not in a minute
+            bus_owner.recheck('axis1').result(2.0)             # checked now, not in a minute
         assert len(calls) == 2 and re.search(AT.format(120), slot.not_driven)
         drive.fail_always['connect'] = LinkError('no answer')   # the device is gone meanwhile
         with pytest.raises(LinkError):
-            sup.recheck('axis1').result(2.0)
+            bus_owner.recheck('axis1').result(2.0)
         assert slot.not_driven == ''                     # nothing is known: DISCONNECTED
         drive.fail_always.clear()
         wait_for(lambda: slot.connected, 2.0, 'connected')
-        assert sup.recheck('axis1').result(1.0) == {'serial_number': '7'}
+        assert bus_owner.recheck('axis1').result(1.0) == {'serial_number': '7'}
     finally:
-        sup.shutdown(0.5)
-    with pytest.raises(supervisor.Cancelled):
-        sup.recheck('axis1').result(1.0)                  # after shutdown: at once
+        bus_owner.shutdown(0.5)
+    with pytest.raises(owner.Cancelled):
+        bus_owner.recheck('axis1').result(1.0)                  # after shutdown: at once
 
 
 def test_a_drive_refused_for_good_stays_refused(fast_recheck):
     """One device configured twice (the node's refuse_drive) is a configuration error: it is
     not connected again, however long the node runs; recheck says so."""
-    sup, drive, slot, calls, _ = scripted()
+    bus_owner, drive, slot, calls, _ = scripted()
     try:
         wait_for(lambda: slot.connected, 2.0, 'connected')
-        sup.refuse_drive('axis1', 'axis1 and axis2 answer with one identity')
+        bus_owner.refuse_drive('axis1', 'axis1 and axis2 answer with one identity')
         wait_for(lambda: not slot.connected, 2.0, 'dropped')
         n = len(calls)
         time.sleep(0.8)                                   # beyond IDENTITY_RECHECK_MAX_S
         assert len(calls) == n and 'one identity' in slot.not_driven
         with pytest.raises(DriveError, match='not driven: axis1 and axis2'):
-            sup.recheck('axis1').result(1.0)
+            bus_owner.recheck('axis1').result(1.0)
     finally:
-        sup.shutdown(0.5)
+        bus_owner.shutdown(0.5)
 
 
 # -------------------------------------------------------------------- the four vendors
@@ -156,15 +156,15 @@ class VendorRig:
 
     def supervise(self):
         self.events = []
-        self.sup = BusSupervisor(self.bus, {self.name: self.drive}, dict(SETTINGS,
+        self.bus_owner = BusOwner(self.bus, {self.name: self.drive}, dict(SETTINGS,
                                  reconnect_period_s=0.1),
                                  on_event=lambda *e: self.events.append(e))
         self.calls = counted(self.drive)
-        self.sup.start()
-        return self.sup.slots[self.name]
+        self.bus_owner.start()
+        return self.bus_owner.slots[self.name]
 
     def close(self):
-        self.sup.shutdown(0.5)
+        self.bus_owner.shutdown(0.5)
 
 
 class XmindK(VendorRig):
@@ -323,7 +323,8 @@ def test_a_wrong_identity_is_not_driven_until_the_device_is_right(tmp_path, vend
         wait_for(lambda: len(rig.calls) >= 3, 10.0, 'checked again, twice')
         assert not slot.connected and slot.not_driven
         with pytest.raises(NotConnected):
-            rig.sup.submit(rig.name, Command(COMMAND, rig.drive.enable, 'enable')).result(2.0)
+            rig.bus_owner.submit(rig.name, Command(COMMAND, rig.drive.enable,
+                                                   'enable')).result(2.0)
         rig.make_right()
         wait_for(lambda: slot.connected and slot.polls, 10.0, 'driven again, no restart')
         assert slot.not_driven == ''

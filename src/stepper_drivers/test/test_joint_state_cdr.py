@@ -10,8 +10,7 @@ import struct
 import pytest
 from rclpy.serialization import deserialize_message, serialize_message
 from sensor_msgs.msg import JointState
-
-from stepper_drivers.joint_state_cdr import JointStateCdr
+from stepper_drivers.ros.joint_state_cdr import JointStateCdr
 
 
 def same(a: float, b: float) -> bool:

@@ -14,19 +14,19 @@ import threading
 
 import can
 import pytest
-from stepper_drivers.drive import complete, DriveError, IdentityError, LinkError
+from stepper_drivers.contract.drive import DriveError, IdentityError, LinkError, complete
 from stepper_drivers.protocol import modbus_rtu as rtu
 from stepper_drivers.protocol import xmind_k as xk
 from stepper_drivers.vendors import rd4
 from stepper_drivers.vendors import vector_step as vs
-from stepper_drivers.vendors import vector_step_map as vm
+from stepper_drivers.vendors.vector_step import regmap as vm
 from stepper_drivers.vendors.xplus_mt import VENDOR as XPLUS_MT
-from stepper_sim.rd4_sim import Rd4DriveSim, RtuLine
-from stepper_sim.socketcand_broker import SocketcandBroker
-
+from stepper_sim.core.socketcand_broker import SocketcandBroker
+from stepper_sim.rd4.sim import Rd4DriveSim, RtuLine
 from test_modbus_tcp_bus import ScriptedServer
 from test_vector_step_drive import params as vector_step_params
-from test_xmind_k_drive import OtherDevice, Rig as XmindKRig
+from test_xmind_k_drive import OtherDevice
+from test_xmind_k_drive import Rig as XmindKRig
 
 
 def raised(call):
@@ -90,8 +90,9 @@ def test_x_mind_k_n_to_a_data_request_is_a_link_error_and_reads_stay_clean(tmp_p
 def test_x_mind_k_scan_lists_a_device_that_answers_n_or_y(tmp_path):
     """stepperctl scan read the RS of an N answer and ended with IndexError."""
     import argparse
-    from stepper_drivers.scanning import Deadline
-    from stepper_drivers.vendors import xmind_k_scan
+
+    from stepper_drivers.contract.scanning import Deadline
+    from stepper_drivers.vendors.xmind_k import scan as xmind_k_scan
     devices = [OtherDevice('a1', 1, {'01QS,RS': b'01N\r'}),
                OtherDevice('a2', 2, {'02QS,RD': b'02Y\r', '02QE': b'02N\r'})]
     r = XmindKRig(tmp_path, devices=devices, connect=False)

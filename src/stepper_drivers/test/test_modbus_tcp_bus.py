@@ -6,13 +6,12 @@ import socket
 import threading
 import time
 
-import pytest
 from pymodbus import FramerType
 from pymodbus.constants import ExcCodes
 from pymodbus.server import ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
-
-from stepper_drivers.drive import DriveError, LinkError
+import pytest
+from stepper_drivers.contract.drive import DriveError, LinkError
 from stepper_drivers.protocol.modbus_tcp import ModbusExceptionError, ModbusTcpBus, make_bus
 
 READ_ONLY = 1001
@@ -287,6 +286,7 @@ def test_a_reply_taken_later_comes_in_pieces_and_the_next_request_waits_for_an_u
     before it came): the next request goes out only after its reply, which is dropped; never
     two requests in flight (pymodbus answers only the first of two that arrive together)."""
     import select
+
     from stepper_drivers.protocol.modbus import FC_READ_HOLDING_REGISTERS, read_request
     rest = threading.Event()
     pipelined = []

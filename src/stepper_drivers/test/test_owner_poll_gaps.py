@@ -1,10 +1,10 @@
 """The bus owner's poll bound, on each vendor's real driver and simulator (no ROS).
 
-Two drives on one bus, one BusSupervisor. Drive B runs a velocity command under the velocity
+Two drives on one bus, one BusOwner. Drive B runs a velocity command under the velocity
 watchdog, fed with a velocity command every FEED_S for FED_S; drive A meanwhile runs the
 vendor's longest step-wise jobs back to back for JOB_S. The test wraps what the owner calls in
 the drives (read_state, the jobs, the stop; every step of a step-wise one timed on its own) and
-checks the owner's promise (supervisor/__init__.py, "No job holds the owner"):
+checks the owner's promise (owner/__init__.py, "No job holds the owner"):
 
 - no poll gap of B exceeds the period plus the longest single step of a job on the bus plus the
   longest single poll transaction on the bus (B's own jobs, its velocity commands and the
@@ -20,18 +20,17 @@ import threading
 import time
 
 import pytest
-from stepper_drivers.commands import Command
-from stepper_drivers.drive import Homing, Motion, is_steps
-from stepper_drivers.supervisor import BusSupervisor
+from stepper_drivers.contract.drive import Homing, Motion, is_operation
+from stepper_drivers.owner import BusOwner
+from stepper_drivers.owner.commands import Command
 from stepper_drivers.vendors import rd4
 from stepper_drivers.vendors import vector_step as vs
 from stepper_drivers.vendors.xplus_mt import VENDOR as XPLUS_MT
+from stepper_sim.core.socketcand_broker import SocketcandBroker
 from stepper_sim.harness import wait_for
-from stepper_sim.rd4_sim import Rd4DriveSim, RtuLine
-from stepper_sim.socketcand_broker import SocketcandBroker
-from stepper_sim.vector_step_sim import NodeConfig, VectorStepSim
-from stepper_sim.xplus_mt_sim import XplusMtDriveConfig, XplusMtSim
-
+from stepper_sim.rd4.sim import Rd4DriveSim, RtuLine
+from stepper_sim.vector_step.sim import NodeConfig, VectorStepSim
+from stepper_sim.xplus_mt.sim import XplusMtDriveConfig, XplusMtSim
 from test_identity_recheck import Rd4, VectorStep, XmindK, XplusMt
 from test_vector_step_drive import params as vector_step_params
 from test_xmind_k_drive import Rig as XmindKRig
@@ -43,7 +42,7 @@ FEED_S = 0.1           # a velocity command to B this often while fed (< command
 # its bookkeeping, well under 1 ms) and this machine's scheduling. Driver, simulator and owner
 # threads share one process and its GIL on 2 CPUs: a thread woken by a reply may wait for the
 # GIL up to the 5 ms switch interval, a few times within one gap. 0.04 s, as
-# test_supervisor.py's bound; measured margins under two busy loops are in the report.
+# test_bus_owner.py's bound; measured margins under two busy loops are in the report.
 SLACK_S = 0.04
 SLOW = Motion(400.0, 4000.0, 4000.0)
 
@@ -76,7 +75,7 @@ class Timeline:
                 result = fn(*args, **kwargs)
             finally:
                 self.inside.on = False
-            if is_steps(result):
+            if is_operation(result):
                 return self._steps(result, drive, what, t0, n, label)
             self.add(drive, what, t0, time.monotonic(), n, label)
             return result
@@ -211,15 +210,15 @@ def test_a_long_job_beside_keeps_the_poll_gap_and_the_watchdog(tmp_path, vendor)
     rig = make(tmp_path)
     a, b = rig.names
     events = []
-    rig.sup = sup = BusSupervisor(rig.bus, rig.drives, {
+    rig.bus_owner = bus_owner = BusOwner(rig.bus, rig.drives, {
         'publish_rate_hz': rate_hz, 'command_timeout_s': timeout_s, 'reconnect_period_s': 0.1},
         on_event=lambda *e: events.append((time.monotonic(), *e)))
-    sup.start()
+    bus_owner.start()
     try:
-        wait_for(lambda: all(s.connected and s.polls for s in sup.slots.values()), 10.0,
+        wait_for(lambda: all(s.connected and s.polls for s in bus_owner.slots.values()), 10.0,
                  'both drives connected')
         for name, d in rig.drives.items():
-            sup.submit(name, Command.enable(d.enable)).result(5.0)
+            bus_owner.submit(name, Command.enable(d.enable)).result(5.0)
         tl = Timeline()
         for name, d in rig.drives.items():
             d.read_state = tl.timed(name, 'poll', d.read_state)
@@ -230,9 +229,9 @@ def test_a_long_job_beside_keeps_the_poll_gap_and_the_watchdog(tmp_path, vendor)
 
         def command_velocity():
             t = time.monotonic()
-            sup.arm_watchdog(b)
+            bus_owner.arm_watchdog(b)
             armed.append((t, time.monotonic()))
-            return sup.submit(b, Command.velocity_stream(set_velocity, 'velocity', velocity))
+            return bus_owner.submit(b, Command.velocity_stream(set_velocity, 'velocity', velocity))
 
         def feed(end):
             while time.monotonic() < end:
@@ -245,7 +244,7 @@ def test_a_long_job_beside_keeps_the_poll_gap_and_the_watchdog(tmp_path, vendor)
         time.sleep(lead_s)
         t0 = time.monotonic()
         for job in jobs_of(rig.drives[a]):     # A's jobs, each waited for
-            sup.submit(a, Command(job.kind, tl.timed(a, 'job', job.fn), job.label,
+            bus_owner.submit(a, Command(job.kind, tl.timed(a, 'job', job.fn), job.label,
                                   job.disarms, job.motion)).result(5.0)
             # (on until the watchdog's stop is due and half a second more: it must come
             # while A's jobs run)

@@ -4,9 +4,8 @@ import pathlib
 
 import pytest
 import rclpy
-
-from stepper_drivers.drive import ParamSpec, Vendor
-from stepper_drivers.params import ParameterError, declare_all, non_ros_args
+from stepper_drivers.contract.drive import ParamSpec, Vendor
+from stepper_drivers.ros.params import ParameterError, declare_all, non_ros_args
 
 VENDOR = Vendor(
     name='TEST', make_bus=None, make_drive=None,
@@ -221,7 +220,7 @@ ORDERS = [
 def test_given_parameters_agrees_with_rcl(tmp_path, text, ros_args):
     """given_parameters reads the arguments as rcl and rclpy combine them. The reference is
     rclpy's private Node._parameter_overrides, read here only: the product code does not."""
-    from stepper_drivers.params import given_parameters
+    from stepper_drivers.ros.params import given_parameters
     f = tmp_path / 'p.yaml'
     f.write_text(text)
     args = ['x', '--ros-args', '--params-file', str(f), *ros_args]

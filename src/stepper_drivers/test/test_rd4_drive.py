@@ -13,13 +13,20 @@ import threading
 import time
 
 import pytest
-from stepper_drivers.drive import (complete, DriveError, Homing, IdentityError, LinkError, Motion,
-                                   State)
+from stepper_drivers.contract.drive import (
+    DriveError,
+    Homing,
+    IdentityError,
+    LinkError,
+    Motion,
+    State,
+    complete,
+)
 from stepper_drivers.protocol import modbus_rtu as rtu
-from stepper_sim.harness import wait_for
 from stepper_drivers.vendors import rd4
-from stepper_drivers.vendors import rd4_map as rm
-from stepper_sim.rd4_sim import Rd4Options, Rd4DriveSim, RtuLine, TICK_S
+from stepper_drivers.vendors.rd4 import regmap as rm
+from stepper_sim.harness import wait_for
+from stepper_sim.rd4.sim import TICK_S, Rd4DriveSim, Rd4Options, RtuLine
 
 
 def crc_modbus(data: bytes) -> bytes:

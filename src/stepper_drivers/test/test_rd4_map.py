@@ -1,7 +1,7 @@
 """RD4 register map (vendors/rd4_map.py) against the manual's tables."""
 
 import pytest
-from stepper_drivers.vendors import rd4_map as rm
+from stepper_drivers.vendors.rd4 import regmap as rm
 
 
 def test_default_block_is_the_manuals_default_list():

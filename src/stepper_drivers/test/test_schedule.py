@@ -1,4 +1,4 @@
-"""The bus owner's order rules (supervisor/schedule.py), as tables: no threads, no drives.
+"""The bus owner's order rules (owner/schedule.py), as tables: no threads, no drives.
 
 Each row sets up the slots of one bus at one instant and names the rule that must apply and
 the drive it applies to. Time is in seconds from an arbitrary origin; the poll period is
@@ -11,10 +11,14 @@ import math
 import types
 
 import pytest
-
-from stepper_drivers.supervisor import schedule
-from stepper_drivers.supervisor.schedule import (MAX_JOBS_BEFORE_OVERDUE_POLL, QuietPass, Rule,
-                                                 Vouched, decide)
+from stepper_drivers.owner import schedule
+from stepper_drivers.owner.schedule import (
+    MAX_JOBS_BEFORE_OVERDUE_POLL,
+    QuietPass,
+    Rule,
+    Vouched,
+    decide,
+)
 
 PERIOD_S = 0.1
 NOW = 10.0
@@ -28,8 +32,8 @@ def slot(name, **fields):
     """A drive at rest: connected, polled just now (next poll a period ahead), no work."""
     s = types.SimpleNamespace(
         name=name, connected=True, not_driven='', identity_recheck=False,
-        velocity_deadline=None, watchdog_retry_t=0.0, active=None, active_steps=None,
-        wake_t=0.0, poll_steps=None, poll_wake_t=0.0, next_poll_t=NOW + PERIOD_S,
+        velocity_deadline=None, watchdog_retry_t=0.0, active=None, active_operation=None,
+        wake_t=0.0, poll_operation=None, poll_wake_t=0.0, next_poll_t=NOW + PERIOD_S,
         poll_requested=False, owner_polls=False, group_polled=False, next_connect_t=0.0,
         queue=collections.deque(), turn=0, poll_waiters=[])
     for k, v in fields.items():
@@ -39,7 +43,7 @@ def slot(name, **fields):
 
 def running(steps_due=True, polled=False, motion=True, **fields):
     """A drive whose step-wise job runs; its next step is due (or not)."""
-    return dict(active=job(polled, motion=motion), active_steps=iter(()),
+    return dict(active=job(polled, motion=motion), active_operation=iter(()),
                 wake_t=NOW - 0.001 if steps_due else NOW + 1.0, **fields)
 
 
@@ -118,26 +122,26 @@ TABLE = [
     # 6 the step of a poll under way, at its own wake time, before jobs that do not move
     ("a poll step before a save's step and a queued save",
      [slot('a', **running(motion=False)), slot('b', **QUEUED_SAVE),
-      slot('c', poll_steps=iter(()), poll_wake_t=NOW)], {}, Rule.POLL_STEP, 'c'),
+      slot('c', poll_operation=iter(()), poll_wake_t=NOW)], {}, Rule.POLL_STEP, 'c'),
     ("a move's step before a poll step",
-     [slot('a', **running()), slot('c', poll_steps=iter(()), poll_wake_t=NOW)], {},
+     [slot('a', **running()), slot('c', poll_operation=iter(()), poll_wake_t=NOW)], {},
      Rule.STEP, 'a'),
     ("a move's step also when a save's comes first in order",
      [slot('a', **running(motion=False)), slot('b', **running()),
-      slot('c', poll_steps=iter(()), poll_wake_t=NOW)], {}, Rule.STEP, 'a'),
+      slot('c', poll_operation=iter(()), poll_wake_t=NOW)], {}, Rule.STEP, 'a'),
     ('a queued move before a poll step',
-     [slot('b', **QUEUED), slot('c', poll_steps=iter(()), poll_wake_t=NOW)], {},
+     [slot('b', **QUEUED), slot('c', poll_operation=iter(()), poll_wake_t=NOW)], {},
      Rule.START_JOB, 'b'),
-    ('the earliest poll step', [slot('a', poll_steps=iter(()), poll_wake_t=NOW - 0.01),
-                                slot('b', poll_steps=iter(()), poll_wake_t=NOW - 0.02)], {},
+    ('the earliest poll step', [slot('a', poll_operation=iter(()), poll_wake_t=NOW - 0.01),
+                                slot('b', poll_operation=iter(()), poll_wake_t=NOW - 0.02)], {},
      Rule.POLL_STEP, 'b'),
-    ('a poll step due', [slot('a', poll_steps=iter(()), poll_wake_t=NOW)], {},
+    ('a poll step due', [slot('a', poll_operation=iter(()), poll_wake_t=NOW)], {},
      Rule.POLL_STEP, 'a'),
     ('a poll step not yet (the drive is not due again meanwhile)',
-     [slot('a', poll_steps=iter(()), poll_wake_t=NOW + 0.06, **OVERDUE)], {}, Rule.SLEEP,
+     [slot('a', poll_operation=iter(()), poll_wake_t=NOW + 0.06, **OVERDUE)], {}, Rule.SLEEP,
      None),
     ('a poll step before a reconnect', [slot('a', connected=False),
-                                        slot('b', poll_steps=iter(()), poll_wake_t=NOW)], {},
+                                        slot('b', poll_operation=iter(()), poll_wake_t=NOW)], {},
      Rule.POLL_STEP, 'b'),
     # 7 a due step: the due polls first, unless the step waited a period for them
     ('polls before a step', [slot('a', **DUE), slot('b', **running())], {},

@@ -10,7 +10,7 @@ import os
 
 import pytest
 import serial
-from stepper_drivers.drive import LinkError
+from stepper_drivers.contract.drive import LinkError
 from stepper_drivers.protocol import serial_port
 from stepper_drivers.protocol.ascii_line import AsciiLine, LineError
 from stepper_drivers.protocol.modbus_rtu import ModbusRtuBus

@@ -3,9 +3,17 @@
 import math
 
 import pytest
-
-from stepper_drivers.trajectory import (EDGE_MARGIN, JointLimits, TrajectoryError, build,
-                                        motion_state, plan, planned_at, sample, trapezoid)
+from stepper_drivers.motion.trajectory import (
+    EDGE_MARGIN,
+    JointLimits,
+    TrajectoryError,
+    build,
+    motion_state,
+    plan,
+    planned_at,
+    sample,
+    trapezoid,
+)
 
 LIM = JointLimits(min_steps=-1e6, max_steps=1e6, max_velocity_steps_s=4000.0,
                   max_acceleration_steps_s2=20000.0, steps_per_unit=1000.0, unit='rad')
@@ -266,7 +274,7 @@ def test_a_continuous_joint_brakes_to_rest_where_it_turns():
 def test_the_profile_model_is_the_simulated_drives():
     """motion_state against stepper_sim's MotionModel (the simulators' profile generator):
     a move taken on the way, faster and slower, and one that has to turn first."""
-    from stepper_sim.motion import MotionModel
+    from stepper_sim.core.motion import MotionModel
     for x0, u0, target, v, a in ((0, 0, 1000, 400, 3000), (100, 300, 900, 500, 2000),
                                  (100, 300, 900, 150, 2000), (500, 400, 200, 300, 2500)):
         t = [0.0]

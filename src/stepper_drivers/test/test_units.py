@@ -1,8 +1,7 @@
 import math
 
 import pytest
-
-from stepper_drivers.units import UnitConversion
+from stepper_drivers.contract.units import UnitConversion
 
 
 def test_rotary_direct_drive():

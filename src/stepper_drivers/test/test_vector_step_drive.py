@@ -13,14 +13,22 @@ import time
 
 import can
 import pytest
-from stepper_drivers import cia402
-from stepper_drivers.drive import (complete, DriveError, Homing, HomingState, IdentityError,
-                                   LinkError, Motion, State)
-from stepper_sim.socketcand_broker import SocketcandBroker
-from stepper_sim.harness import wait_for as wait
+from stepper_drivers.contract.drive import (
+    DriveError,
+    Homing,
+    HomingState,
+    IdentityError,
+    LinkError,
+    Motion,
+    State,
+    complete,
+)
+from stepper_drivers.profiles.cia402 import state_machine as cia402
 from stepper_drivers.vendors import vector_step as vs
-from stepper_drivers.vendors import vector_step_map as vm
-from stepper_sim.vector_step_sim import NodeConfig, SYNC_CONFIRM_S, VectorStepSim
+from stepper_drivers.vendors.vector_step import regmap as vm
+from stepper_sim.core.socketcand_broker import SocketcandBroker
+from stepper_sim.harness import wait_for as wait
+from stepper_sim.vector_step.sim import SYNC_CONFIRM_S, NodeConfig, VectorStepSim
 
 logging.getLogger('can.interfaces.socketcand.socketcand').setLevel(logging.ERROR)
 
@@ -611,7 +619,7 @@ def test_enable_ends_in_operation_enabled_when_txpdo2_to_4_lag(tmp_path):
         sim.stop()
 
 
-# --- step-wise operations (drive.Steps) --------------------------------------------------------
+# --- step-wise operations (drive.Operation) -------------------------------------------------
 def steps_transactions(bus, steps):
     """Run a step-wise operation by hand; the bus transactions of each step (SDO + RxPDO)."""
     per_step = []

@@ -4,7 +4,7 @@ manual describes it (type, access, PDO mapping, defaults)."""
 import canopen
 from canopen.objectdictionary import datatypes
 import pytest
-from stepper_drivers.vendors import vector_step_map as vm
+from stepper_drivers.vendors.vector_step import regmap as vm
 
 TYPES = {'u8': datatypes.UNSIGNED8, 'i8': datatypes.INTEGER8, 'u16': datatypes.UNSIGNED16,
          'i16': datatypes.INTEGER16, 'u32': datatypes.UNSIGNED32, 'i32': datatypes.INTEGER32,

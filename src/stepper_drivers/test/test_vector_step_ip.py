@@ -12,12 +12,12 @@ import time
 
 import can
 import pytest
-from stepper_drivers.drive import complete, DriveError, State
-from stepper_sim.socketcand_broker import SocketcandBroker
-from stepper_sim.harness import wait_for as wait
+from stepper_drivers.contract.drive import DriveError, State, complete
 from stepper_drivers.vendors import vector_step as vs
-from stepper_drivers.vendors import vector_step_map as vm
-from stepper_sim.vector_step_sim import NodeConfig, VectorStepSim
+from stepper_drivers.vendors.vector_step import regmap as vm
+from stepper_sim.core.socketcand_broker import SocketcandBroker
+from stepper_sim.harness import wait_for as wait
+from stepper_sim.vector_step.sim import NodeConfig, VectorStepSim
 
 logging.getLogger('can.interfaces.socketcand.socketcand').setLevel(logging.ERROR)
 

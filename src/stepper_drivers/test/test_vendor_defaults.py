@@ -9,7 +9,6 @@ its bus no SYNC and no heartbeat, where the node (and docs/vector_step.md) gives
 """
 
 import pytest
-
 from stepper_drivers.vendors import rd4, vector_step, xmind_k, xplus_mt
 
 

@@ -9,10 +9,20 @@ import math
 import time
 
 import pytest
-from stepper_drivers.drive import (complete, DriveError, Homing, HomingState, IdentityError,
-                                   is_steps, LinkError, Motion, RefusedError, State)
+from stepper_drivers.contract.drive import (
+    DriveError,
+    Homing,
+    HomingState,
+    IdentityError,
+    LinkError,
+    Motion,
+    RefusedError,
+    State,
+    complete,
+    is_operation,
+)
 from stepper_drivers.vendors import xmind_k as v
-from stepper_sim.xmind_k_sim import build_line, XmindKDriveSim, XmindKLine
+from stepper_sim.xmind_k.sim import XmindKDriveSim, XmindKLine, build_line
 
 BUS = {'baudrate': 9600, 'parity': 'N', 'stopbits': 1, 'timeout_s': 0.1, 'retries': 1,
        'local_echo': False}
@@ -379,7 +389,7 @@ def test_read_state_gives_the_bus_back_between_its_strings(rig):
     stopped_running_velocity_job(rig, d)
     rig.wire.clear()
     steps = d.read_state()
-    assert is_steps(steps)
+    assert is_operation(steps)
     state, per_step = run_steps(rig, steps)
     # QA (job over), QO,FA, QO,F7, WN 229, PS 229: one string per step
     assert rig.wire == ['01QA', '01QO,FA', '01QO,F7', '01WN,229,22,2500,-,x1,000', '01PS,229']
@@ -395,7 +405,7 @@ def test_a_stop_between_the_steps_of_a_restart_cancels_it(rig):
     next(steps)                               # QA: the free run is over, the new one pending
     assert d.job is None and d.pending is not None
     wire = len(rig.wire)
-    assert not is_steps(d.stop())             # the urgent path: plain, at most one string
+    assert not is_operation(d.stop())             # the urgent path: plain, at most one string
     assert rig.wire[wire:] == []              # nothing runs: nothing to stop
     complete(steps)
     assert not [s for s in rig.wire[wire:] if s[2:4] in ('WN', 'PS')]

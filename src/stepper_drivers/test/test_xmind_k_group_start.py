@@ -10,11 +10,11 @@ no drive that nobody commanded moves.
 import time
 
 import pytest
-from stepper_drivers.drive import complete, Motion
+from stepper_drivers.contract.drive import Motion, complete
 from stepper_drivers.protocol import xmind_k as xk
 from stepper_drivers.vendors import xmind_k as v
-from stepper_sim.faults import NO_REPLY
-from stepper_sim.xmind_k_sim import build_line
+from stepper_sim.core.faults import NO_REPLY
+from stepper_sim.xmind_k.sim import build_line
 
 CHAR_S = xk.char_time_s()          # 1.04 ms a character at 9600 baud (§3)
 # one PS and its Y: 9 + 4 characters; per-drive starts lie at least this far apart

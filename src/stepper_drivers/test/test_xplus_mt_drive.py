@@ -9,13 +9,21 @@ import os
 import time
 
 import pytest
-
-from stepper_drivers.drive import (DriveError, Homing, HomingState, IdentityError, LinkError,
-                                   Motion, State, complete, is_steps)
-from stepper_drivers.vendors import xplus_mt_map as xm
+from stepper_drivers.contract.drive import (
+    DriveError,
+    Homing,
+    HomingState,
+    IdentityError,
+    LinkError,
+    Motion,
+    State,
+    complete,
+    is_operation,
+)
 from stepper_drivers.vendors.xplus_mt import VENDOR, XplusMtDrive
-from stepper_sim.xplus_mt_sim import XplusMtDriveConfig, XplusMtSim
+from stepper_drivers.vendors.xplus_mt import regmap as xm
 from stepper_sim.harness import wait_for
+from stepper_sim.xplus_mt.sim import XplusMtDriveConfig, XplusMtSim
 
 FAST = Motion(velocity_steps_s=100_000, acceleration_steps_s2=2_000_000,
               deceleration_steps_s2=2_000_000)
@@ -374,7 +382,7 @@ def test_vendor_description():
 def run_steps(result, bus):
     """Run a step-wise result as the bus owner does (sleeping each yielded delay); returns
     (value, transactions of each step)."""
-    assert is_steps(result), 'not step-wise'
+    assert is_operation(result), 'not step-wise'
     per_step, seen = [], bus.transactions
     while True:
         try:
@@ -421,7 +429,7 @@ def test_stop_is_one_read_and_one_write(sim, axis1):
     complete(axis1.enable())
     complete(axis1.set_velocity(40_000, FAST))
     before = axis1.bus.transactions
-    assert not is_steps(axis1.stop())               # the urgent path: never step-wise
+    assert not is_operation(axis1.stop())               # the urgent path: never step-wise
     assert axis1.bus.transactions - before == 2
     assert sim.drives['axis1'].controlword & 0x0100  # Halt
 
@@ -502,6 +510,7 @@ def test_another_modbus_device_is_not_an_xplus_mt():
     """A plain pymodbus server (registers 0..99) where the X-PLUS MT was configured."""
     import asyncio
     import threading
+
     from pymodbus.server import ModbusTcpServer
     from pymodbus.simulator import DataType, SimData, SimDevice
 

@@ -4,8 +4,7 @@ T15-T26)."""
 import re
 
 import pytest
-
-from stepper_drivers.vendors import xplus_mt_map as m
+from stepper_drivers.vendors.xplus_mt import regmap as m
 
 # (value, little-endian words, big-endian words) in address order A, A+1.
 WORDS = [

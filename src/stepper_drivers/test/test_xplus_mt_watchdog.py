@@ -10,11 +10,10 @@ import json
 import time
 
 import pytest
-
-from stepper_drivers.drive import Motion, State, complete
-from stepper_sim.harness import wait_for
+from stepper_drivers.contract.drive import Motion, State, complete
 from stepper_drivers.vendors.xplus_mt import VENDOR
-from stepper_sim.xplus_mt_sim import XplusMtDriveConfig, XplusMtSim
+from stepper_sim.harness import wait_for
+from stepper_sim.xplus_mt.sim import XplusMtDriveConfig, XplusMtSim
 
 RUN = Motion(velocity_steps_s=0, acceleration_steps_s2=400_000, deceleration_steps_s2=400_000)
 WATCHDOG_MS = 300

@@ -157,7 +157,7 @@ class SyncListener:
     of the SYNCs (COB-ID 0x080) it relays, so a test judges the SYNC on the wire itself."""
 
     def __init__(self, port: int):
-        import can              # (only the CAN tests and benchmarks need python-can)
+        import can  # (only the CAN tests and benchmarks need python-can)
         self.bus = can.Bus(interface='socketcand', host='127.0.0.1', port=port, channel='can0',
                            tcp_tune=True)
         self.stamps: list[float] = []

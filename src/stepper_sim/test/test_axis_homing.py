@@ -1,10 +1,15 @@
 """SimAxis switch/index events and the CiA 402 homing procedures, in simulated time."""
 
 import pytest
-
-from stepper_sim.axis import (HOMING_METHODS, AxisEvent, HomingRun, SimAxis, SwitchMethod,
-                              register_homing_method)
-from stepper_sim.motion import INF
+from stepper_sim.core.axis import (
+    HOMING_METHODS,
+    AxisEvent,
+    HomingRun,
+    SimAxis,
+    SwitchMethod,
+    register_homing_method,
+)
+from stepper_sim.core.motion import INF
 
 N = 12_800          # steps per revolution: an index pulse every N steps
 PHASE = 100.0       # index pulses at 100 + k * 12800

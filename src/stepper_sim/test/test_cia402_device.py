@@ -1,4 +1,4 @@
-"""The simulators' device-side CiA 402 (stepper_sim.cia402_device) against the manuals' tables.
+"""The simulators' device-side CiA 402 (stepper_sim.cia402.slave) against the manuals' tables.
 
 X-PLUS = rta_xplus_mt_modbus_tcp.txt (§12 "Drive Sub-States", T13, T14, §13 "Register 1001/1040/
 1085", "Multi-Set-Point Mode"); AEC = aec_vector_step_canopen_it.txt ([CONTROLWORD],
@@ -8,10 +8,9 @@ cia402.py is used.
 """
 
 import pytest
-
-from stepper_sim import cia402_device as cia
-from stepper_sim.cia402_device import FAULT, FRA, NRTSO, OE, QSA, RTSO, SO, SOD
-from stepper_sim.motion import MotionModel
+from stepper_sim.cia402 import slave as cia
+from stepper_sim.cia402.slave import FAULT, FRA, NRTSO, OE, QSA, RTSO, SO, SOD
+from stepper_sim.core.motion import MotionModel
 
 
 class Drive:

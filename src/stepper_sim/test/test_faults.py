@@ -5,8 +5,7 @@ import contextlib
 import time
 
 import pytest
-
-from stepper_sim.faults import MODES, FaultyTcpProxy, LinkFaults, invert_bytes
+from stepper_sim.core.faults import MODES, FaultyTcpProxy, LinkFaults, invert_bytes
 
 
 @contextlib.asynccontextmanager

@@ -3,8 +3,7 @@
 import time
 
 import pytest
-
-from stepper_sim.line_timing import LineTiming, char_time_s, frame_time_s, t15_s, t35_s
+from stepper_sim.core.line_timing import LineTiming, char_time_s, frame_time_s, t15_s, t35_s
 
 
 def test_character_frame_and_silence_times():

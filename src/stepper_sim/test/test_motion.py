@@ -3,8 +3,7 @@
 import math
 
 import pytest
-
-from stepper_sim.motion import INF, MotionModel
+from stepper_sim.core.motion import INF, MotionModel
 
 
 class FakeClock:

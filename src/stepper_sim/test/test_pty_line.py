@@ -9,8 +9,8 @@ import select
 import time
 
 import pytest
+from stepper_sim.core.pty_line import LINK_FAULTS, PtyLine, PtyLineBackend
 from stepper_sim.harness import wait_for
-from stepper_sim.pty_line import LINK_FAULTS, PtyLine, PtyLineBackend
 
 
 class UpperLine(PtyLine):

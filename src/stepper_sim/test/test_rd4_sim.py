@@ -12,9 +12,9 @@ import time
 
 import pytest
 import serial
+from stepper_drivers.vendors.rd4 import regmap as rm
 from stepper_sim.harness import wait_for
-from stepper_drivers.vendors import rd4_map as rm
-from stepper_sim.rd4_sim import Rd4Options, Rd4DriveSim, RtuLine
+from stepper_sim.rd4.sim import Rd4DriveSim, Rd4Options, RtuLine
 
 
 def h(text: str) -> bytes:
@@ -133,7 +133,7 @@ def test_silence_for_bad_crc_broadcast_other_node_and_garbage(line, client):
     bad_crc = good[:-1] + bytes((good[-1] ^ 0x01,))
     broadcast = h('00 06 00 06 05 DC')
     other = h('05 03 00 06 00 02')
-    from stepper_drivers.protocol.modbus_rtu import add_crc   # CRC of the altered frames
+    from stepper_drivers.protocol.modbus_rtu import add_crc  # CRC of the altered frames
     for frame in (bad_crc, add_crc(broadcast), add_crc(other), h('FF 00 13')):
         assert c.silent(frame) == b'', frame.hex(' ')
     with ln.lock:
@@ -148,6 +148,7 @@ def test_garbage_reads_have_a_valid_crc_and_writes_still_act(line, client):
     """Fault 'garbage_reads': another device's words in the next `code` read replies,
     CRC valid (seeded, so reproducible); the writes still reach the unit."""
     import random
+
     from stepper_drivers.protocol.modbus_rtu import add_crc
     ln = line()
     c = client(ln)

@@ -7,7 +7,7 @@ import sys
 
 import can
 import pytest
-from stepper_sim.socketcand_broker import SocketcandBroker
+from stepper_sim.core.socketcand_broker import SocketcandBroker
 
 logging.getLogger('can.interfaces.socketcand.socketcand').setLevel(logging.ERROR)
 
@@ -84,7 +84,7 @@ def test_listens_on_loopback_only():
 
 
 def test_runs_as_a_module_and_prints_its_port():
-    proc = subprocess.Popen([sys.executable, '-m', 'stepper_sim.socketcand_broker',
+    proc = subprocess.Popen([sys.executable, '-m', 'stepper_sim.core.socketcand_broker',
                              '--port', '0'], stdout=subprocess.PIPE, text=True)
     try:
         line = proc.stdout.readline()

@@ -15,9 +15,9 @@ import time
 
 import can
 import pytest
-from stepper_sim.socketcand_broker import SocketcandBroker
-from stepper_drivers.vendors import vector_step_map as vm
-from stepper_sim.vector_step_sim import NodeConfig, SYNC_CONFIRM_S, VectorStepSim
+from stepper_drivers.vendors.vector_step import regmap as vm
+from stepper_sim.core.socketcand_broker import SocketcandBroker
+from stepper_sim.vector_step.sim import SYNC_CONFIRM_S, NodeConfig, VectorStepSim
 
 logging.getLogger('can.interfaces.socketcand.socketcand').setLevel(logging.ERROR)
 

@@ -3,7 +3,7 @@ install has no source tree for vector_step_map.eds_path() to find)."""
 
 import pathlib
 
-from stepper_sim.vector_step_sim import installed_eds
+from stepper_sim.vector_step.sim import installed_eds
 
 WS = pathlib.Path(__file__).resolve().parents[3]
 

@@ -11,9 +11,9 @@ import time
 
 import canopen
 import pytest
-from stepper_sim.socketcand_broker import SocketcandBroker
-from stepper_drivers.vendors import vector_step_map as vm
-from stepper_sim.vector_step_sim import NodeConfig, VectorStepSim
+from stepper_drivers.vendors.vector_step import regmap as vm
+from stepper_sim.core.socketcand_broker import SocketcandBroker
+from stepper_sim.vector_step.sim import NodeConfig, VectorStepSim
 
 logging.getLogger('can.interfaces.socketcand.socketcand').setLevel(logging.ERROR)
 NODE_ID = 7

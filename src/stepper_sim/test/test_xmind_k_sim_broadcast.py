@@ -8,9 +8,9 @@ simulator's truth: the instants at which the axes began their runs (`motion_star
 import time
 
 import pytest
-from stepper_sim.harness import RawLine
 from stepper_drivers.protocol import xmind_k as xk
-from stepper_sim.xmind_k_sim import XmindKDriveSim, XmindKLine
+from stepper_sim.harness import RawLine
+from stepper_sim.xmind_k.sim import XmindKDriveSim, XmindKLine
 
 CHAR_S = xk.char_time_s()          # 1.04 ms a character at 9600 baud (§3)
 RUN = '31,050,30,+2000,x1,000'     # 2000 steps at 5 kHz, ramp code 30: about 0.41 s

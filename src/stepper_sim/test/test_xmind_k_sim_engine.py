@@ -6,7 +6,7 @@ instruction: motion on the Table 5 ramps, zero search on PX, delayed stop, recov
 
 import pytest
 from stepper_drivers.protocol import xmind_k as xk
-from stepper_sim.xmind_k_sim import XmindKDriveSim
+from stepper_sim.xmind_k.sim import XmindKDriveSim
 
 
 class Clock:

@@ -9,7 +9,7 @@ import time
 
 import pytest
 from stepper_sim.harness import RawLine
-from stepper_sim.xmind_k_sim import XmindKLine, XmindKDriveSim
+from stepper_sim.xmind_k.sim import XmindKDriveSim, XmindKLine
 
 ADDRESSES = (0, 1, 2, 3, 5, 6, 7, 8, 9, 11, 12, 13, 14, 15, 23)
 

@@ -10,12 +10,11 @@ import socket
 import struct
 import time
 
-import pytest
 from pymodbus.client import ModbusTcpClient
 from pymodbus.exceptions import ModbusException
-
-from stepper_sim.xplus_mt_sim import XplusMtDriveConfig, XplusMtSim
+import pytest
 from stepper_sim.harness import wait_for
+from stepper_sim.xplus_mt.sim import XplusMtDriveConfig, XplusMtSim
 
 SW, CW, MODE, DISPLAY = 1001, 1040, 1041, 1002
 POS, VEL, ERR_REG, ERR_CODE = 1004, 1020, 1006, 1007

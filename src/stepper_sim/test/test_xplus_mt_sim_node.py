@@ -5,13 +5,13 @@ import signal
 import subprocess
 import time
 
+from pymodbus.client import ModbusTcpClient
 import pytest
 import rclpy
-from pymodbus.client import ModbusTcpClient
 from rclpy.executors import SingleThreadedExecutor
 from std_msgs.msg import Float64
-from stepper_sim.harness import free_port, Proc
 from stepper_drivers_msgs.srv import InjectFault, SetInput
+from stepper_sim.harness import Proc, free_port
 
 WS = pathlib.Path(__file__).resolve().parents[3]
 EXE = WS / 'install' / 'stepper_sim' / 'lib' / 'stepper_sim' / 'xplus_mt_sim'

@@ -8,5 +8,12 @@ Two halves that share nothing but the exit codes:
 """
 
 # the exit codes, re-exported (hence F401): the commands' callers import them from the package
-from .errors import (EXIT_FAILED, EXIT_FAULT, EXIT_NOT_FOUND, EXIT_OK, EXIT_TIMEOUT,  # noqa: F401
-                     EXIT_USAGE, CliError)
+from .errors import (  # noqa: F401
+                     EXIT_FAILED,
+                     EXIT_FAULT,
+                     EXIT_NOT_FOUND,
+                     EXIT_OK,
+                     EXIT_TIMEOUT,
+                     EXIT_USAGE,
+                     CliError,
+)

@@ -14,8 +14,8 @@ import threading
 import time
 from typing import Any, Callable, Iterable
 
-from .ros_client import RosClient, command_qos
 from .errors import EXIT_NOT_FOUND, EXIT_TIMEOUT, EXIT_USAGE, CliError
+from .ros_client import RosClient, command_qos
 
 logger = logging.getLogger(__name__)
 

@@ -115,7 +115,7 @@ def _scan_parser(sub, with_vendors: bool) -> None:
         p.add_argument('--node-name', metavar='NAME',
                        help='node name in that file (default <vendor>_node)')
 
-    from .scan import scanners     # as main() imports it: for scan command lines only
+    from .scan import scanners  # as main() imports it: for scan command lines only
     for key, scanner in scanners().items():
         p = vendors.add_parser(key, help=scanner.help)
         common(p, *scanner.add_options(p))
@@ -148,6 +148,11 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f'{PROG}: interrupted', file=sys.stderr, flush=True)
         return EXIT_INTERRUPTED
+
+
+def stepperctl() -> None:
+    """The stepperctl executable (console script in setup.py)."""
+    sys.exit(main())
 
 
 if __name__ == '__main__':

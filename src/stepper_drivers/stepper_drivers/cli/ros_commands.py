@@ -15,8 +15,16 @@ import threading
 import time
 from typing import Any
 
-from .errors import (EXIT_FAILED, EXIT_FAULT, EXIT_INTERRUPTED, EXIT_NOT_FOUND, EXIT_OK,
-                     EXIT_TIMEOUT, EXIT_USAGE, CliError)
+from .errors import (
+    EXIT_FAILED,
+    EXIT_FAULT,
+    EXIT_INTERRUPTED,
+    EXIT_NOT_FOUND,
+    EXIT_OK,
+    EXIT_TIMEOUT,
+    EXIT_USAGE,
+    CliError,
+)
 from .graph import DriveRef, Graph
 from .view import CLEAR_SCREEN, Live, progress_bar, row, table
 

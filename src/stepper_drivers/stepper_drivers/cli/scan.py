@@ -15,8 +15,8 @@ import sys
 import time
 from typing import Any
 
-from .. import vendor_table
-from ..scanning import BusResult, Deadline, Scanner, ScanError, ScanUsageError
+from ..contract.scanning import BusResult, Deadline, ScanError, Scanner, ScanUsageError
+from ..vendors import table as vendor_table
 from .errors import EXIT_FAILED, EXIT_NOT_FOUND, EXIT_OK, EXIT_USAGE, CliError
 
 NODE_NAMES = {row.key: row.node for row in vendor_table.ROWS}

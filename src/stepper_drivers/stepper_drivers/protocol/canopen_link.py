@@ -20,7 +20,7 @@ to the application):
   - EMCY and TPDO reception counters, the last EMCY,
   - SDO access that raises the project's errors: an abort is an SdoAbortError (a DriveError
     naming the code and its CiA 301 text), no answer is a LinkError (the node then reconnects),
-  - step-wise waits and PDO configuration (`drive.Steps`: one SDO per step).
+  - step-wise waits and PDO configuration (`drive.Operation`: one SDO per step).
 NMT commands are sent as raw frames: canopen's NmtMaster.send_command() looks the last received
 heartbeat state up in a table and raises KeyError for a state byte it does not know.
 No rclpy here.
@@ -40,16 +40,30 @@ from typing import Any, Callable
 import can
 import canopen
 from canopen.emcy import EmcyError
-from canopen.objectdictionary import datatypes, ODVariable, ObjectDictionaryError
+from canopen.objectdictionary import ObjectDictionaryError, ODVariable, datatypes
 from canopen.sdo.base import SdoVariable
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
-from ..drive import Bus, DriveError, LinkError, Steps
-from .canopen_producers import (PERSISTENT_ERRORS, Cyclic, ProducerProcess, ProducerThread,
-                                SyncRecord)
-from .cia301 import (EMCY_NO_ERROR, PDO_COB_BASES_RX, PDO_COB_BASES_TX, PDO_INVALID,
-                     RPDO_COMMUNICATION, RPDO_MAPPING, TPDO_COMMUNICATION, TPDO_MAPPING,
-                     abort_text, mapping_entry)
+from ..contract.drive import Bus, DriveError, LinkError, Operation
+from .canopen_producers import (
+    PERSISTENT_ERRORS,
+    Cyclic,
+    ProducerProcess,
+    ProducerThread,
+    SyncRecord,
+)
+from .cia301 import (
+    EMCY_NO_ERROR,
+    PDO_COB_BASES_RX,
+    PDO_COB_BASES_TX,
+    PDO_INVALID,
+    RPDO_COMMUNICATION,
+    RPDO_MAPPING,
+    TPDO_COMMUNICATION,
+    TPDO_MAPPING,
+    abort_text,
+    mapping_entry,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -710,7 +724,7 @@ class RemoteDrive:
             self.bus.changes += 1
 
     # Waiting ------------------------------------------------------------------------------------
-    def wait(self, condition: Callable[[], bool], timeout_s: float) -> Steps[bool]:
+    def wait(self, condition: Callable[[], bool], timeout_s: float) -> Operation[bool]:
         """Step-wise wait for a condition on what the receive thread records (evaluated under
         this object's lock); True when met, False at the timeout."""
         deadline = time.monotonic() + timeout_s
@@ -732,7 +746,7 @@ class RemoteDrive:
         self._node()
         self.bus.send(0x000, bytes([NMT_COMMANDS[command], self.node_id]))
 
-    def reset_and_wait_bootup(self, command: str, timeout_s: float) -> Steps[bool]:
+    def reset_and_wait_bootup(self, command: str, timeout_s: float) -> Operation[bool]:
         """NMT reset (node or communication) with the boot-up latch armed before the frame."""
         with self._lock:
             seen = self.bootups
@@ -835,7 +849,7 @@ class RemoteDrive:
     # PDO configuration [COME MAPPARE UN PDO] --------------------------------------------------
     def configure_pdo(self, direction: str, number: int,
                       entries: tuple[tuple[int, int, int], ...], transmission_type: int = 0xFE,
-                      event_timer_ms: int = 0, inhibit_time_100us: int = 0) -> Steps[None]:
+                      event_timer_ms: int = 0, inhibit_time_100us: int = 0) -> Operation[None]:
         """Map one PDO (1..4) and enable it; an empty `entries` disables it. One SDO per step.
 
         The robust sequence of the digest's section 9 (canopen's PdoMap.save() order): COB-ID
@@ -887,7 +901,7 @@ class RemoteDrive:
                 network.subscribe(pdo.cob_id, self._tpdo_frame)
                 self._tpdo_cobs.append(pdo.cob_id)
 
-    def wait_heartbeat_state(self, state: int, since: float, timeout_s: float) -> Steps[bool]:
+    def wait_heartbeat_state(self, state: int, since: float, timeout_s: float) -> Operation[bool]:
         """Wait for a heartbeat received after `since` (time.monotonic()) showing `state`."""
         return (yield from self.wait(
             lambda: self.heartbeat_state == state and self.heartbeat_at is not None

@@ -28,7 +28,7 @@ from typing import Callable, Mapping, Sequence
 
 from pymodbus.constants import ExcCodes
 
-from .. import drive
+from ..contract import drive
 
 FC_READ_HOLDING_REGISTERS = 0x03
 FC_READ_INPUT_REGISTERS = 0x04

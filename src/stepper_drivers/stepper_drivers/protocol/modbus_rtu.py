@@ -29,15 +29,30 @@ from typing import Any, Sequence
 
 from pymodbus.framer import FramerRTU
 
-from .. import drive
+from ..contract import drive
 from . import serial_port
-from .modbus import (EXCEPTION_FLAG, FC_READ_HOLDING_REGISTERS,  # noqa: F401 - re-exported
-                     FC_READ_INPUT_REGISTERS, FC_WRITE_MULTIPLE_REGISTERS,
-                     FC_WRITE_SINGLE_REGISTER, FUNCTION_CODES, ILLEGAL_DATA_ADDRESS,
-                     ILLEGAL_DATA_VALUE, ILLEGAL_FUNCTION, MAX_READ_COUNT, MAX_WRITE_COUNT,
-                     SERVER_DEVICE_FAILURE, ModbusBus, ModbusExceptionError, ReplyMismatch,
-                     Request, parse_reply_pdu, read_request, write_multiple_request,
-                     write_single_request)
+from .modbus import (  # noqa: F401 - re-exported
+    EXCEPTION_FLAG,
+    FC_READ_HOLDING_REGISTERS,
+    FC_READ_INPUT_REGISTERS,
+    FC_WRITE_MULTIPLE_REGISTERS,
+    FC_WRITE_SINGLE_REGISTER,
+    FUNCTION_CODES,
+    ILLEGAL_DATA_ADDRESS,
+    ILLEGAL_DATA_VALUE,
+    ILLEGAL_FUNCTION,
+    MAX_READ_COUNT,
+    MAX_WRITE_COUNT,
+    SERVER_DEVICE_FAILURE,
+    ModbusBus,
+    ModbusExceptionError,
+    ReplyMismatch,
+    Request,
+    parse_reply_pdu,
+    read_request,
+    write_multiple_request,
+    write_single_request,
+)
 
 logger = logging.getLogger(__name__)
 

@@ -24,9 +24,16 @@ import threading
 import time
 from typing import Any, Mapping
 
-from .. import drive
-from .modbus import (MAX_READ_COUNT, MAX_WRITE_COUNT, ModbusBus,  # noqa: F401 - re-exported
-                     ModbusExceptionError, ReplyMismatch, Request, parse_reply_pdu)
+from ..contract import drive
+from .modbus import (  # noqa: F401 - re-exported
+    MAX_READ_COUNT,
+    MAX_WRITE_COUNT,
+    ModbusBus,
+    ModbusExceptionError,
+    ReplyMismatch,
+    Request,
+    parse_reply_pdu,
+)
 
 logger = logging.getLogger(__name__)
 

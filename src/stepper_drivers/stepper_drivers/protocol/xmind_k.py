@@ -1,7 +1,7 @@
 """R.T.A. X-MIND K ASCII protocol over RS-485: frames, tables, range checks, line timing.
 
 No ROS and no I/O. Shared by the driver (`vendors/xmind_k.py`) and the simulator
-(`stepper_sim/xmind_k_sim.py`); section numbers (§4.1.2, Table 5) point into the
+(`stepper_sim/xmind_k/sim.py`); section numbers (§4.1.2, Table 5) point into the
 *X-MIND K series Programmer's manual* (shared/manuals/rta_xmind_k_serial.txt).
 
 Every string is ``AA<code>[,<params>]\\r`` (§4): a 2-digit drive address 00-47 (99 = broadcast,

@@ -12,8 +12,8 @@ import logging
 import time
 from typing import Any, Mapping
 
-from .. import drive
-from ..drive import DriveError, LinkError
+from ..contract import drive
+from ..contract.drive import DriveError, LinkError
 from . import xmind_k as xk
 from .ascii_line import AsciiLine, LineError
 

@@ -1,0 +1,3 @@
+"""The drive contract: Bus, Drive, DriveState, errors, the units and parameter rules every vendor
+shares (no rclpy).
+"""

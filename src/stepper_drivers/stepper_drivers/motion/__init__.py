@@ -1,0 +1,1 @@
+"""Motion planning over the drive contract: trajectories and their follower (no rclpy)."""

@@ -1,0 +1,1 @@
+"""Device profiles shared by several vendors (no rclpy)."""

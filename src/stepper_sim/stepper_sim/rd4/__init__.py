@@ -1,0 +1,1 @@
+"""The simulated Lika RD4: its device and its Modbus RTU line (`sim`)."""
