@@ -1,1 +1,2 @@
-"""The simulated Lika RD4: its device and its Modbus RTU line (`sim`)."""
+"""The simulated Lika RD4: its device (`device`, its Control Word in `control`) and its Modbus RTU
+line (`sim`)."""

@@ -9,15 +9,14 @@ consumer heartbeat (0x1016), the EMCY producer (0x1014, inhibit time 0x1015) and
 
 from __future__ import annotations
 
+from contextlib import AbstractContextManager
 import logging
 import struct
 import time
-from typing import TYPE_CHECKING
+from typing import Any, Callable, Protocol
 
+from canopen import LocalNode
 from stepper_drivers.vendors.vector_step import regmap as vm
-
-if TYPE_CHECKING:
-    from .sim import VectorStepNode
 
 logger = logging.getLogger(__name__)
 
@@ -37,16 +36,77 @@ SYNC_CONFIRM_S = 0.02
 RALARM_MISSING_SYNC = 1 << 18        # Ralarm32 bit 18 "Mancanza Sync (CANopen o EtherCAT)"
 
 
+class NmtBus(Protocol):
+    """What the NMT slave needs of the node's bus (a `sim.VectorStepSim`)."""
+
+    reboot_delay_s: float
+
+    @property
+    def lock(self) -> AbstractContextManager[Any]: ...
+
+    def wake(self) -> None: ...
+
+
+class NmtSdo(Protocol):
+    """... of the node's SDO server (a `sdo.SdoServer`): started at boot-up."""
+
+    def start(self) -> None: ...
+
+
+class NmtPdo(Protocol):
+    """... of the node's PDO engine (a `pdo.PdoEngine`): loaded at boot-up, sent on entering
+    OPERATIONAL."""
+
+    def load(self) -> None: ...
+
+    def enter_operational(self) -> None: ...
+
+
+class NmtNode(Protocol):
+    """What the NMT slave needs of its node (a `sim.VectorStepNode`): its object dictionary
+    (`_stored`, `local`), its link to the bus (`sim`, `send`, `subscribe`, `link_cut`), the
+    parts started at boot-up (`sdo`, `pdo`) and the drive application this resets and reports
+    for (`_power_on_state`, `raise_alarm`, the error history and `error_register`)."""
+
+    name: str
+    id: int
+    link_cut: bool
+    alarm_causes: int
+    comm_error: bool
+    history: list[int]
+    error_code: int
+
+    @property
+    def local(self) -> LocalNode: ...
+
+    @property
+    def sim(self) -> NmtBus: ...
+
+    @property
+    def sdo(self) -> NmtSdo: ...
+
+    @property
+    def pdo(self) -> NmtPdo: ...
+
+    def _stored(self, index: int, sub: int = 0) -> Any: ...
+
+    def send(self, cob: int, data: bytes) -> None: ...
+
+    def subscribe(self, cob: int, handler: Callable) -> None: ...
+
+    def unsubscribe_all(self, handler: Callable) -> None: ...
+
+    def raise_alarm(self, bits: int) -> None: ...
+
+    def error_register(self) -> int: ...
+
+    def _power_on_state(self) -> None: ...
+
+
 class NmtSlave:
-    """NMT, error control, EMCY and the SYNC watchdog of one node.
+    """NMT, error control, EMCY and the SYNC watchdog of one node (`node`: see NmtNode)."""
 
-    `node` is the VectorStepNode: its object dictionary (`_stored`, `local`), its link to the bus
-    (`sim`, `send`, `subscribe`, `link_cut`), the parts started at boot-up (`sdo`, `pdo`) and
-    the drive application this resets and reports for (`_power_on_state`, `raise_alarm`, the
-    error history and `error_register`).
-    """
-
-    def __init__(self, node: VectorStepNode):
+    def __init__(self, node: NmtNode):
         self.node = node
         self.state = NMT_INITIALISING
         self.boot_at: float | None = None

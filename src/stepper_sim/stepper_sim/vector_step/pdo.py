@@ -8,19 +8,18 @@ The master's (re)mapping is honoured after every SDO write; TxPDOs on change, on
 
 from __future__ import annotations
 
+from contextlib import AbstractContextManager
 import dataclasses
 import functools
 import logging
 import time
-from typing import TYPE_CHECKING, Callable
+from typing import Any, Callable, Protocol
 
+from canopen import LocalNode
 from canopen.sdo.exceptions import SdoAbortedError
 from stepper_drivers.vendors.vector_step import regmap as vm
 
 from .nmt import NMT_INITIALISING, NMT_OPERATIONAL
-
-if TYPE_CHECKING:
-    from .sim import VectorStepNode
 
 logger = logging.getLogger(__name__)
 
@@ -56,15 +55,65 @@ class Pdo:
         return self.last_sent + max(self.event_timer_ms / 1000.0, self.inhibit_100us * 1e-4)
 
 
+class PdoBus(Protocol):
+    """What the PDO engine needs of the node's bus (a `sim.VectorStepSim`)."""
+
+    @property
+    def lock(self) -> AbstractContextManager[Any]: ...
+
+    def run_after(self) -> None: ...
+
+    def wake(self) -> None: ...
+
+
+class PdoNmt(Protocol):
+    """... of the node's NMT slave (a `nmt.NmtSlave`): the SYNC watchdog and EMCY."""
+
+    def sync_timeout_s(self) -> float: ...
+
+    def sync_watch(self, since: float | None) -> None: ...
+
+    def emcy(self, code: int, vendor: bytes = b'', comm: bool = False) -> None: ...
+
+
+class PdoNode(Protocol):
+    """What the PDO engine needs of its node (a `sim.VectorStepNode`): its object dictionary
+    (`_stored`, `local`), its link to the bus (`sim`, `send`, `subscribe`, `link_cut`,
+    `nmt_state`), the SYNC watchdog (`nmt`) and the drive application the PDOs carry
+    (`process`, `ip_on_sync`, EMCY through `nmt`)."""
+
+    name: str
+    link_cut: bool
+
+    @property
+    def local(self) -> LocalNode: ...
+
+    @property
+    def sim(self) -> PdoBus: ...
+
+    @property
+    def nmt(self) -> PdoNmt: ...
+
+    @property
+    def nmt_state(self) -> int: ...
+
+    def _stored(self, index: int, sub: int = 0) -> Any: ...
+
+    def send(self, cob: int, data: bytes) -> None: ...
+
+    def subscribe(self, cob: int, handler: Callable) -> None: ...
+
+    def unsubscribe(self, cob: int, handler: Callable) -> None: ...
+
+    def process(self) -> None: ...
+
+    def ip_on_sync(self, stamp_s: float) -> None: ...
+
+
 class PdoEngine:
-    """The PDOs of one node.
+    """The PDOs of one node (`node`: see PdoNode)."""
 
-    `node` is the VectorStepNode: its object dictionary (`_stored`, `local`), its link to the bus
-    (`sim`, `send`, `subscribe`, `link_cut`, `nmt_state`), the SYNC watchdog (`nmt`) and the
-    drive application the PDOs carry (`process`, `ip_on_sync`, EMCY through `nmt`).
-    """
-
-    def __init__(self, node: VectorStepNode):
+    def __init__(self, node: PdoNode):
         self.node = node
         self.rx: list[Pdo] = []
         self.tx: list[Pdo] = []

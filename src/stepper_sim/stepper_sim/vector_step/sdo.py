@@ -8,9 +8,10 @@ drive (`VectorStepDriveSim._on_write_device`), reads to `_on_read_device`.
 
 from __future__ import annotations
 
+from contextlib import AbstractContextManager
 import logging
 import time
-from typing import TYPE_CHECKING, Any
+from typing import Any, Callable, Protocol
 
 import canopen
 from canopen.objectdictionary import ODArray, ODRecord, ODVariable
@@ -20,22 +21,89 @@ from stepper_drivers.vendors.vector_step import regmap as vm
 from ..core.faults import garble_one
 from .nmt import NMT_INITIALISING, NMT_STOPPED
 
-if TYPE_CHECKING:
-    from .sim import VectorStepNode
-
 logger = logging.getLogger(__name__)
 
 
+class SdoBus(Protocol):
+    """What the SDO server needs of the node's bus (a `sim.VectorStepSim`)."""
+
+    @property
+    def lock(self) -> AbstractContextManager[Any]: ...
+
+    def after(self, fn: Callable[[], None]) -> None: ...
+
+    def run_after(self) -> None: ...
+
+    def wake(self) -> None: ...
+
+
+class SdoNmt(Protocol):
+    """... of the node's NMT slave (a `nmt.NmtSlave`), which writes of 0x1006, 0x1016 and
+    0x1017 reconfigure."""
+
+    heartbeat_due: float | None
+
+    def load_consumers(self) -> None: ...
+
+    def sync_watch(self, since: float | None) -> None: ...
+
+
+class SdoPdo(Protocol):
+    """... of the node's PDO engine (a `pdo.PdoEngine`), reloaded after a PDO parameter write."""
+
+    def load(self) -> None: ...
+
+
+class SdoNode(Protocol):
+    """What the SDO server needs of its node (a `sim.VectorStepNode`): its object dictionary
+    (`_obj`, `_stored`, `local`), its link to the bus (`sim`, `subscribe`, `link_cut`,
+    `garble_sdo`, `nmt_state`), the other parts a write reconfigures (`nmt`, `pdo`) and the
+    drive application behind the checks (`_on_read_device`, `_on_write_device`, `process`, the
+    error history)."""
+
+    id: int
+    link_cut: bool
+    garble_sdo: bool
+    comm_error: bool
+    home_error_latched: bool
+    history: list[int]
+
+    @property
+    def local(self) -> canopen.LocalNode: ...
+
+    @property
+    def sim(self) -> SdoBus: ...
+
+    @property
+    def nmt(self) -> SdoNmt: ...
+
+    @property
+    def pdo(self) -> SdoPdo: ...
+
+    @property
+    def nmt_state(self) -> int: ...
+
+    def _obj(self, index: int, sub: int) -> ODVariable: ...
+
+    def _stored(self, index: int, sub: int = 0) -> Any: ...
+
+    def subscribe(self, cob: int, handler: Callable) -> None: ...
+
+    def unsubscribe(self, cob: int, handler: Callable) -> None: ...
+
+    def unsubscribe_all(self, handler: Callable) -> None: ...
+
+    def _on_read_device(self, index: int, subindex: int, od: ODVariable) -> Any: ...
+
+    def _on_write_device(self, index: int, subindex: int, value: Any) -> None: ...
+
+    def process(self) -> None: ...
+
+
 class SdoServer:
-    """The SDO checks of one node.
+    """The SDO checks of one node (`node`: see SdoNode)."""
 
-    `node` is the VectorStepNode: its object dictionary (`_obj`, `_stored`, `local`), its link
-    to the bus (`sim`, `subscribe`, `link_cut`, `garble_sdo`, `nmt_state`), the other parts a
-    write reconfigures (`nmt`, `pdo`) and the drive application behind the checks
-    (`_on_read_device`, `_on_write_device`, `process`, the error history).
-    """
-
-    def __init__(self, node: VectorStepNode):
+    def __init__(self, node: SdoNode):
         self.node = node
         self.rx_cob = 0x600 + node.id
         self.tx_cob = 0x580 + node.id

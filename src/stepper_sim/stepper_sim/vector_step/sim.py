@@ -18,7 +18,7 @@ or more `VectorStepNode`s. Each node is a `canopen.LocalNode` built from config/
     or at the next SYNC (0..240), EMCY 0x8210/0x8220 on a length error,
   - SDO checks LocalNode leaves out: value ranges from the EDS, sub-index existence, the
     manual's abort codes (0x1005/0x1014 bits 29/30, 0x1016 duplicates, PDO mapping),
-  - the application: the simulators' shared CiA 402 (cia402_device, not the driver's), profile
+  - the application: the simulators' shared CiA 402 (cia402.slave, not the driver's), profile
     position (absolute/relative, change set immediately, one buffered set-point), interpolated
     position (7: two-position buffer 0x60C1, one linear segment per SYNC over the period of
     0x60C2, EMCY FF03/FF04/FF05), AEC JOG velocity mode (-1), homing with the manual's
@@ -30,12 +30,13 @@ The simulator ignores S-curve profiles (0x6086): moves are trapezoidal. `main()`
 the common ROS simulator node (sim_node.run_sim), on the EDS installed with stepper_drivers
 (`installed_eds()`). Nothing here imports the driver's state logic.
 
-Modules, along CANopen's own seams: vector_step_nmt (NmtSlave: NMT, error control, EMCY, SYNC
-watchdog), vector_step_sdo (SdoServer: SDO server checks), vector_step_pdo (PdoEngine: PDOs),
-vector_step_drive (VectorStepDriveSim: the AEC drive on the shared device-side cia402_device).
-Here VectorStepNode is the drive (its base class) holding the three CANopen parts as objects
-(`node.nmt`, `node.sdo`, `node.pdo`, each given the node), with the link to the bus, the timers
-and fault injection; VectorStepSim runs the bus, and `main()` the ROS executable.
+Modules, along CANopen's own seams: nmt (NmtSlave: NMT, error control, EMCY, SYNC watchdog),
+sdo (SdoServer: SDO server checks), pdo (PdoEngine: PDOs), device (VectorStepDriveSim: the AEC
+drive on the shared device-side cia402.slave, with its mixins modes, homing, interpolation and
+storage). Here VectorStepNode is the drive (its base class) holding the three CANopen parts as
+objects (`node.nmt`, `node.sdo`, `node.pdo`, each given the node and needing of it only what its
+module's Protocol names: NmtNode, SdoNode, PdoNode), with the link to the bus, the timers and
+fault injection; VectorStepSim runs the bus, and `main()` the ROS executable.
 """
 
 from __future__ import annotations

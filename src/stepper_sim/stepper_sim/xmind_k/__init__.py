@@ -1,1 +1,2 @@
-"""The simulated R.T.A. X-MIND K: its device and its ASCII line (`sim`)."""
+"""The simulated R.T.A. X-MIND K: its device (`device`, its program engine in `program`) and its
+ASCII line (`sim`)."""

@@ -1,23 +1,22 @@
-"""One simulated R.T.A. X-PLUS MT drive: configuration, register image, CiA 402 glue, storage.
+"""One simulated R.T.A. X-PLUS MT drive: configuration, register image, CiA 402 glue.
 
-The drive behind the Modbus TCP front of `xplus_mt_sim.py` (behaviour and manual references are
+The drive behind the Modbus TCP front of `xplus_mt.sim` (behaviour and manual references are
 listed there). The CiA 402 power state machine, the statusword state bits and the PP set-point
-handshake are the shared device-side tables of `cia402_device.py` (profile `XPLUS_MT`). This
+handshake are the shared device-side tables of `cia402.slave` (profile `XPLUS_MT`). This
 module holds the device's state and lock, the register image and its Modbus reads and writes
 (§11, §13 register by register), the digital I/O registers, HV for Switch On (§12 transition 3),
-the cia402_device hooks, the 1097 watchdog and 1260/1261 storage. Along the drive's own seams,
-two mixins hold the rest: `xplus_mt_modes` (profile position with multi-set-point and halt,
-profile velocity, homing on a SimAxis, limit switches, the statusword bits of each mode) and
-`xplus_mt_faults` (faults, the alarm log, the 1085 following-error reaction, injections).
+the cia402.slave hooks and the 1097 watchdog. Along the drive's own seams, three mixins hold the
+rest: `xplus_mt.modes` (profile position with multi-set-point and halt, profile velocity, homing
+on a SimAxis, limit switches, the statusword bits of each mode), `xplus_mt.faults` (faults, the
+alarm log, the 1085 following-error reaction, injections) and `xplus_mt.storage` (1260/1261
+storage).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 import math
-import os
 import threading
 import time
 from typing import Callable, Sequence
@@ -27,10 +26,12 @@ from stepper_drivers.vendors.xplus_mt import regmap as xm
 
 from ..cia402 import slave as cia
 from ..cia402.slave import FAULT, FRA, OE, QSA, RTSO, SO, SOD
-from ..core.axis import HOME, LIMIT_NEG, LIMIT_POS, HomingRun, SimAxis
+from ..core.axis import HOME, LIMIT_NEG, LIMIT_POS, SimAxis
+from ..core.homing import HomingRun
 from ..core.motion import INF
 from .faults import HV_STABLE_S, LOST_REPLY_HOLD_S, XplusMtFaults
 from .modes import XplusMtModes
+from .storage import XplusMtStorage
 
 # LOST_REPLY_HOLD_S: xplus_mt_sim holds a lost reply this long
 __all__ = ['LOST_REPLY_HOLD_S', 'XplusMtDriveConfig', 'XplusMtDriveSim']
@@ -106,7 +107,7 @@ def _none_if_nan(value: float | None) -> float | None:
     return None if value is None or math.isnan(value) else float(value)
 
 
-class XplusMtDriveSim(XplusMtModes, XplusMtFaults):
+class XplusMtDriveSim(XplusMtModes, XplusMtFaults, XplusMtStorage):
     """One X-PLUS MT: register image, state machine, modes, faults, over a SimAxis.
 
     Thread-safe (one lock): the Modbus server thread and the ROS thread both call it.
@@ -222,11 +223,6 @@ class XplusMtDriveSim(XplusMtModes, XplusMtFaults):
         with self._lock:
             self.update()
             return self._value(xm.REGISTERS[name])
-
-    def storage_path(self) -> str | None:
-        if not self.storage_dir:
-            return None
-        return os.path.join(self.storage_dir, f'xplus_mt_unit{self.unit_id}.json')
 
     # ------------------------------------------------------------------ time
     def update(self, now: float | None = None) -> None:
@@ -509,55 +505,6 @@ class XplusMtDriveSim(XplusMtModes, XplusMtFaults):
                 if self._encoder_reset_pending:
                     self._encoder_reset_pending = False
                     self.axis.set_position(0.0)
-
-    # ------------------------------------------------------------------ storage
-    def _load_storage(self) -> None:
-        path = self.storage_path()
-        if not path or not os.path.exists(path):
-            return
-        try:
-            with open(path, encoding='utf-8') as f:
-                data = json.load(f)
-            for section in ('registers', 'ip_registers'):
-                for key, value in data.get(section, {}).items():
-                    reg = xm.BY_ADDRESS.get(int(key))
-                    if reg is not None and reg.accepts(int(value)):
-                        self._regs[reg.address] = int(value)
-        except (OSError, ValueError) as exc:
-            logger.warning('%s: storage %s not loaded: %s', self.name, path, exc)
-
-    def _signature(self, address: int, value: int) -> None:
-        if address == xm.RESTORE_DEFAULTS_REGISTER:
-            for a in xm.STORABLE:
-                self._regs[a] = xm.BY_ADDRESS[a].default   # [R] RAM now; 0x6173 makes it stay
-            logger.info('%s: default parameters restored', self.name)
-            return
-        path = self.storage_path()
-        if value == xm.SAVE_PARAMS_SIGNATURE:
-            section, addresses = 'registers', xm.STORABLE
-        else:
-            section, addresses = 'ip_registers', xm.IP_REGISTERS
-        if not path:
-            logger.info('%s: save (0x%04X) accepted; no storage_dir, kept in RAM only',
-                        self.name, value)
-            return
-        data: dict = {}
-        if os.path.exists(path):
-            try:
-                with open(path, encoding='utf-8') as f:
-                    data = json.load(f)
-            except (OSError, ValueError):
-                data = {}
-        data.update({'device': 'R.T.A. X-PLUS MT (simulated)', 'unit_id': self.unit_id})
-        data[section] = {str(a): self._regs[a] for a in addresses}
-        data.setdefault('names', {}).update({str(a): xm.BY_ADDRESS[a].name for a in addresses})
-        os.makedirs(self.storage_dir, exist_ok=True)
-        tmp = f'{path}.tmp'
-        with open(tmp, 'w', encoding='utf-8') as f:
-            json.dump(data, f, indent=1, sort_keys=True)
-        os.replace(tmp, path)
-        logger.info('%s: %s stored in %s', self.name, section, path)
-
 
 def _clamp_i32(value: int) -> int:
     return max(xm.I32_MIN, min(xm.I32_MAX, int(value)))

@@ -30,7 +30,8 @@ from ..cia402.slave import (
     SW_PROFILE_RAMP,
     SW_TARGET_REACHED,
 )
-from ..core.axis import LIMIT_NEG, LIMIT_POS, AxisEvent, HomingRun
+from ..core.axis import LIMIT_NEG, LIMIT_POS, AxisEvent
+from ..core.homing import HomingRun
 from ..core.motion import INF
 
 logger = logging.getLogger(__name__)

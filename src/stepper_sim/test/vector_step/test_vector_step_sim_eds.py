@@ -5,7 +5,7 @@ import pathlib
 
 from stepper_sim.vector_step.sim import installed_eds
 
-WS = pathlib.Path(__file__).resolve().parents[3]
+WS = pathlib.Path(__file__).resolve().parents[4]
 
 
 def test_the_entry_point_finds_the_installed_eds_of_the_workspace():

@@ -13,7 +13,7 @@ from std_msgs.msg import Float64
 from stepper_drivers_msgs.srv import InjectFault, SetInput
 from stepper_sim.harness import Proc, free_port
 
-WS = pathlib.Path(__file__).resolve().parents[3]
+WS = pathlib.Path(__file__).resolve().parents[4]
 EXE = WS / 'install' / 'stepper_sim' / 'lib' / 'stepper_sim' / 'xplus_mt_sim'
 PARAMS = WS / 'config' / 'xplus_mt_sim.yaml'
 
