@@ -284,6 +284,25 @@ def namespaced_params(key: str, ns: str, log_dir: pathlib.Path) -> pathlib.Path:
     return path
 
 
+def probe(key: str, link: str, params: dict[str, Any], log_dir: pathlib.Path,
+          frames: Any, procs: list[Any]) -> tuple[str, Any]:
+    """(the link the node opens, what counts the new targets on the wire): the CAN broker's
+    frames, or a relay between node and simulator (a Modbus TCP relay, a pty relay), started
+    and added to `procs`."""
+    if frames is not None:
+        return link, frames.setpoints
+    setpoints = SetPoints(target_frame(key))
+    if key == 'xplus_mt':
+        relay = Helper(['tcp', link], log_dir, f'{key}_relay', setpoints.on_line)
+        node_link = relay.head[0].split()[1]
+    else:
+        node_link = str(log_dir / f'{key}_node.tty')
+        relay = Helper(['pty', node_link, link, str(params['baudrate'])], log_dir,
+                       f'{key}_relay', setpoints.on_line)
+    procs.append(relay)
+    return node_link, setpoints
+
+
 def run_vendor(key: str, ros: RosClient, log_dir: pathlib.Path, args) -> dict:
     from rclpy.qos import qos_profile_sensor_data
     from sensor_msgs.msg import JointState
@@ -325,19 +344,7 @@ def run_vendor(key: str, ros: RosClient, log_dir: pathlib.Path, args) -> dict:
         bare_s, bare_what = transaction_s(spec, link)
         res['limit'] = dataclasses.asdict(line_limit(key, params, bare_s, bare_what))
         # the probe between node and simulator (after the bare loop: a pty takes one master)
-        node_link = link
-        if frames is not None:
-            setpoints = frames.setpoints
-        else:
-            setpoints = SetPoints(target_frame(key))
-            if key == 'xplus_mt':
-                relay = Helper(['tcp', link], log_dir, f'{key}_relay', setpoints.on_line)
-                node_link = relay.head[0].split()[1]
-            else:
-                node_link = str(log_dir / f'{key}_node.tty')
-                relay = Helper(['pty', node_link, link, str(params['baudrate'])], log_dir,
-                               f'{key}_relay', setpoints.on_line)
-            procs.append(relay)
+        node_link, setpoints = probe(key, link, params, log_dir, frames, procs)
         node = Proc([executable('stepper_drivers', node_name), '--ros-args',
                      '--params-file', str(namespaced_params(key, ns, log_dir)),
                      '-r', f'__ns:=/{ns}', '-p', f'{spec.link_param}:={node_link}',

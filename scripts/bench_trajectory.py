@@ -1068,6 +1068,33 @@ def run_two_node(ros: RosClient, log_dir: pathlib.Path, sample_hz: float,
     return results
 
 
+def point_arrivals(buses: dict[str, Bus], axes: list[tuple[str, str]], points: list,
+                   start: list[float], steps: dict, start_t: float) -> list[dict]:
+    """Arrival at each point: when each axis passes the point's whole-step position, how late
+    against the point's time, and the spread over the axes."""
+    arrivals = []
+    for k in range(1, len(points)):
+        due = start_t + points[k][0]
+        at, missed, bracket = {}, [], 0.0
+        for c, (key, d) in enumerate(axes):
+            conv = buses[key].convs[d]
+            first, target = round(conv.to_steps(start[c])), round(conv.to_steps(points[k][1][c]))
+            if target == first:
+                continue                           # still its start step: nothing to pass
+            sign = 1.0 if conv.to_steps(points[-1][1][c]) > conv.to_steps(start[c]) else -1.0
+            hit = crossing(steps[(key, d)], target, sign)
+            if hit is None:
+                missed.append(f'{key}/{d}')
+            else:
+                at[f'{key}/{d}'] = hit[0] - due
+                bracket = max(bracket, hit[1])
+        spread = max(at.values()) - min(at.values()) if len(at) >= 2 and not missed else None
+        arrivals.append({'k': k, 'time_s': points[k][0], 'late_s': at, 'missed': missed,
+                         'axes': len(at) + len(missed), 'spread_s': spread,
+                         'bracket_s': bracket})
+    return arrivals
+
+
 def _two_node_one(buses: dict[str, Bus], ros: RosClient, dt: float, sample_hz: float,
                   bound: float) -> dict:
     for b in buses.values():
@@ -1137,27 +1164,7 @@ def _two_node_one(buses: dict[str, Bus], ros: RosClient, dt: float, sample_hz: f
                    finish_from_stamp_s=g.result_t - start_t, finish_from_sent_s=g.result_t
                    - g.sent_t, sent_before_stamp_s=start_t - g.sent_t)
         out['nodes'][key] = fig
-    # arrival at each point: when each axis passes the point's whole-step position
-    arrivals = []
-    for k in range(1, len(points)):
-        due = start_t + points[k][0]
-        at, missed, bracket = {}, [], 0.0
-        for c, (key, d) in enumerate(axes):
-            conv = buses[key].convs[d]
-            first, target = round(conv.to_steps(start[c])), round(conv.to_steps(points[k][1][c]))
-            if target == first:
-                continue                           # still its start step: nothing to pass
-            sign = 1.0 if conv.to_steps(points[-1][1][c]) > conv.to_steps(start[c]) else -1.0
-            hit = crossing(steps[(key, d)], target, sign)
-            if hit is None:
-                missed.append(f'{key}/{d}')
-            else:
-                at[f'{key}/{d}'] = hit[0] - due
-                bracket = max(bracket, hit[1])
-        spread = max(at.values()) - min(at.values()) if len(at) >= 2 and not missed else None
-        arrivals.append({'k': k, 'time_s': points[k][0], 'late_s': at, 'missed': missed,
-                         'axes': len(at) + len(missed), 'spread_s': spread,
-                         'bracket_s': bracket})
+    arrivals = point_arrivals(buses, axes, points, start, steps, start_t)
     spreads = [a['spread_s'] for a in arrivals if a['spread_s'] is not None]
     lates = [x for a in arrivals for x in a['late_s'].values()]
     out.update(arrivals=arrivals, bound_s=bound,

@@ -190,10 +190,6 @@ class Bus(abc.ABC):
     description: str = ''       # e.g. 'modbus tcp 127.0.0.1:1502', used in logs and diagnostics
     errors: int = 0             # transactions that failed (timeout, CRC, exception reply)
     transactions: int = 0
-    # What its drives sent by themselves that may change a state_from_cache drive's state (a
-    # frame that is not a repeat): +1 each, counted after what it changed is stored; 0 on
-    # buses without. Unchanged, what Drive.unchanged_until vouched for still holds.
-    changes: int = 0
 
     @abc.abstractmethod
     def open(self) -> None: ...
@@ -209,42 +205,10 @@ class Bus(abc.ABC):
         """Link counters shown in status and diagnostics; vendors may add their own keys."""
         return {'transactions': self.transactions, 'errors': self.errors}
 
-    # A bus whose requests can be sent now and their replies taken later without blocking
-    # (`send_request(request)`, `take_reply(request)` -> reply or None, `fileno()`): the node
-    # then polls the drives of several such buses from one thread (poll_group.PollGroup).
-    nonblocking_polls: bool = False
-
     def health(self) -> tuple[str, str] | None:
         """Trouble of the link itself that its drives' states do not show (a CAN controller's
         error frames, bus-off): ('warn' or 'error', text), or None. The node raises the
         link's /diagnostics level by it and adds the text to each drive's status alarms."""
-        return None
-
-    # Group start: moves of several drives of this bus that begin in one instant (the X-MIND K:
-    # one broadcast string). Every other bus has none (the defaults below).
-    def group_start(self, drives: Sequence[Drive]
-                    ) -> Callable[[Sequence[tuple[Drive, int, Motion]]], Operation[Any]] | None:
-        """Called when the caller decides to start `drives` (two or more of this bus)
-        together, before it queues the job (any thread; reads only): None where the bus has no
-        group start; else the starter, which notes now what it needs of each drive (a stop or
-        disable of one from now on leaves that drive out). The caller then runs
-        `starter(moves)` in ONE job of the bus owner (Command.move under one of the drives,
-        `also` the others: owner/__init__.py), moves being (drive, target_steps, Motion)
-        as move_to takes them, one per drive of `drives`. Step-wise; it refuses as move_to does
-        (DriveError, nothing sent) and returns an object with `started` (the names of the
-        drives whose move went out), `skipped` (name -> why that drive's move did not go out:
-        a stop, a refusal, an unconfirmed write; nothing else of the job is undone) and
-        `sent_t` (time.monotonic() when the string that started the last drive was on the
-        wire, None when none was). Where it cannot start them together (the bus decides) it
-        starts each drive on its own, one after the other, in the same job."""
-        return None
-
-    def group_start_check(self) -> Callable[[], Operation[str]] | None:
-        """What the bus must check on the link before group_start may start drives together
-        (X-MIND K: the line probe for drives of no node), as the fn of a MAINTENANCE job of the
-        bus owner, which the node queues once a drive of the bus connected; it returns a line
-        for the log. None: nothing to check now (the default; or the check has run since the
-        link was opened, or is under way)."""
         return None
 
 
@@ -256,6 +220,9 @@ class Drive(abc.ABC):
     - `enable()` first sets the target to the actual position, so nothing moves.
     - Commands are checked by the node layer (limits, NaN); the drive checks its own ranges.
     - Anything the drive cannot do raises RefusedError with the reason for the user.
+
+    What a drive can do beyond this interface is a capability it also derives from
+    (capabilities.py); the attributes below only tell the trajectory planner its limits.
     """
 
     address: Any = ''   # bus address as the user configured it (unit id, node id, ASCII address)
@@ -265,19 +232,6 @@ class Drive(abc.ABC):
     # The least speed the drive runs a move at (its velocity resolution or range); a slower
     # trajectory segment runs at this speed and arrives early. 0: any speed.
     min_velocity_steps_s: float = 0.0
-    # read_state() reads what the drive sent by itself (CANopen TxPDOs), no transaction: the bus
-    # owner then polls the other drives due in the same pass.
-    state_from_cache: bool = False
-    # How long the last read_state() counts as fresh for a motion command: a driver may then
-    # take "enabled, no alarm" from it instead of reading it on the wire first (the bus owner
-    # sets its poll period here). 0: read it on the wire before every motion.
-    state_fresh_s: float = 0.0
-    # move_to while a move runs takes the new target on the way, without a stop first (CiA 402
-    # profile position with "change set immediately", controlword bit 5). The trajectory
-    # follower then gives a late axis that goes on in the same direction its next target at
-    # once: it passes its point on the way. False: a new move stops the running one first, or
-    # waits for it (until_ready_for_move); a late axis's next move waits for its arrival.
-    retargets_on_the_way: bool = False
     # time.monotonic() at which the last move_to's motion frame went out, where move_to goes on
     # after it (a CiA 402 set-point handshake waits for the acknowledge); None: at its end.
     motion_sent_t: float | None = None
@@ -294,24 +248,6 @@ class Drive(abc.ABC):
 
     @abc.abstractmethod
     def read_state(self) -> DriveState: ...
-
-    def unchanged_until(self, state: DriveState) -> float:
-        """Until when (time.monotonic()) read_state() would return `state` (the caller's last
-        result of it, or its equal) and raise nothing, as long as the bus' `changes` stays as it
-        was before this call and nothing is commanded: a state_from_cache drive whose cache
-        nothing changed, up to its next liveness check (a heartbeat's deadline). Told without
-        a transaction or a wait. The bus owner then counts it polled without the call (a cycle
-        with nothing new). 0.0 (now: it would not, or in doubt): the default."""
-        return 0.0
-
-    def state_requests(self) -> list[Any]:
-        """The requests on a `nonblocking_polls` bus whose replies read_state() decodes
-        (state_from_replies), or []: read_state() only, in the bus owner."""
-        return []
-
-    def state_from_replies(self, replies: list[Any]) -> DriveState:
-        """read_state() from the replies to state_requests(), taken by someone else."""
-        raise NotImplementedError
 
     # Power stage ----------------------------------------------------------------------------
     @abc.abstractmethod
@@ -391,33 +327,13 @@ class ParamSpec:
     read_only: bool = True
 
 
-class InterpolatingDrive(abc.ABC):
-    """A drive that can follow a stream of set points, one per period (CiA 402 interpolated
-    position): the trajectory follower (follow.py) streams to it instead of sending
-    point-to-point moves when `interpolation_period_s` is not None."""
-
-    @property
-    @abc.abstractmethod
-    def interpolation_period_s(self) -> float | None:
-        """The period set points are streamed at with the current settings; None: follow
-        trajectories point to point."""
-
-    @abc.abstractmethod
-    def start_interpolation(self, period_s: float) -> Operation[int]:
-        """Step-wise: enter the mode without moving; returns the position it holds [steps]."""
-
-    @abc.abstractmethod
-    def interpolation_point(self, position_steps: int) -> None:
-        """The next set point (once per period)."""
-
-
 @dataclasses.dataclass(frozen=True)
 class Vendor:
     """Everything a vendor module gives the node layer and stepperctl, in one object: its
     parameters, the two factories, the check of a whole configuration, the files of the
-    installed package its parameters may name, and its bus scanner. Its capabilities beyond the
-    Drive interface are interfaces its drive class implements (InterpolatingDrive) or Drive
-    attributes it sets (state_from_cache ...)."""
+    installed package its parameters may name, and its bus scanner. What its drives and buses
+    can do beyond the Drive and Bus interfaces are the capabilities they implement
+    (capabilities.py)."""
 
     name: str                      # e.g. 'X-PLUS MT'
     params: tuple[ParamSpec, ...]  # vendor bus and per-drive parameters
@@ -430,8 +346,8 @@ class Vendor:
     joint_defaults: Mapping[str, Any] = dataclasses.field(default_factory=dict)
     # Per-drive parameters that choose the drive's link (X-PLUS MT: 'host', 'port'): a drive
     # that sets one ('' and 0 mean "as the bus-level parameter of the same name") gets a bus of
-    # its own, with its own owner thread (and polls lent to one poll group where the bus has
-    # nonblocking_polls); drives with equal values share one bus.
+    # its own, with its own owner thread (and polls lent to one poll group where the bus is
+    # capabilities.NonblockingPolls); drives with equal values share one bus.
     drive_bus_params: tuple[str, ...] = ()
     # The check of a whole configuration (bus and every drive's params): one line per problem,
     # naming the parameter. Run by the node at start-up, after the per-parameter checks.
@@ -443,13 +359,23 @@ class Vendor:
     scanner: Scanner | None = None
 
     def with_defaults(self, params: Mapping[str, Any]) -> dict[str, Any]:
-        """One drive's `params` over this vendor's defaults: its bus-scope and drive-scope
-        ParamSpecs (not the drive_bus_params, whose drive-level '' / 0 means "as the bus"),
-        then drive_defaults. The node declares every parameter with these same defaults; a
-        drive made without it (scripts, benchmarks) gets them from here, the one place, and
-        not from literals in a drive class that can disagree with the docs (the Vector Step's
-        sync_timeout_s fell back to 0, its SYNC watchdog off, against a documented 0.5 s)."""
-        defaults = {p.name: p.default for p in self.params if p.scope == 'bus'}
-        defaults.update((p.name, p.default) for p in self.params
-                        if p.scope == 'drive' and p.name not in self.drive_bus_params)
-        return {**defaults, **self.drive_defaults, **params}
+        """One drive's `params` over this vendor's defaults (`param_defaults` of its params,
+        drive_defaults and drive_bus_params)."""
+        return param_defaults(self.params, self.drive_defaults, self.drive_bus_params, params)
+
+
+def param_defaults(param_specs: Sequence[ParamSpec], drive_defaults: Mapping[str, Any],
+                   drive_bus_params: Sequence[str], params: Mapping[str, Any]
+                   ) -> dict[str, Any]:
+    """One drive's `params` over a vendor's defaults: its bus-scope and drive-scope ParamSpecs
+    (not the drive_bus_params, whose drive-level '' / 0 means "as the bus"), then
+    drive_defaults. The node declares every parameter with these same defaults; a drive made
+    without it (scripts, benchmarks) gets them from here, the one place, and not from literals
+    in a drive class that can disagree with the docs (the Vector Step's sync_timeout_s fell
+    back to 0, its SYNC watchdog off, against a documented 0.5 s). Both `Vendor.with_defaults`
+    and a vendor's `settings.with_defaults` (what its drive class calls: the drive does not
+    import the vendor entry that builds the Vendor) come here."""
+    defaults = {p.name: p.default for p in param_specs if p.scope == 'bus'}
+    defaults.update((p.name, p.default) for p in param_specs
+                    if p.scope == 'drive' and p.name not in drive_bus_params)
+    return {**defaults, **drive_defaults, **params}

@@ -24,26 +24,17 @@ is slower than its drive's least speed (`min_velocity_steps_s`) runs at that spe
 early: it is off the path by less than that speed times the segment's duration.
 
 Velocity-continuous following (`plan(continuous=...)`: the joints whose drives take a new target
-while they move, Drive.retargets_on_the_way: the RD4's "Position override function", the
-X-PLUS MT's and the Vector Step's change set immediately in profile position): a joint does not
-stop at its points. Each segment's move goes to the drive before the one before it would start to
-slow down: its target is the next point where the joint goes on the same way (the drive then
-never brakes for the point it passes), its speed the one that passes the segment's point at the
-segment's end, found on the drive's own profile (`motion_state`: from the speed it has, ramps of
-one acceleration, a cruise, a brake at the target). It takes effect half its speed change before
-the segment starts, so that the change is centred on the point between the two segments (the
-joint's speed then steps from one segment's average to the next one's around each point: its
-position passes the points on time). The ramps: PLAN_FRACTIONS[0] of its max_acceleration, or
-RAMP_SHAPE times the plan's largest acceleration of the joint (the points' accelerations, or their
-positions' second differences) where that is steeper; a drive that runs start-stop at a speed
-(X-PLUS MT) jumps. A joint whose planned velocity is zero at a point, or that turns or holds
-there, brakes to rest on it, as the rest-to-rest segments do.
+while they move, capabilities.Retargeting): a joint does not stop at its points; continuous.py
+plans those moves over the merged segments (its docstring has how).
 
 The path is bounded: the plan (merged segments, continuous profiles) is evaluated at every point
 of the trajectory and may pass no farther from any than `path_bound_steps` (per joint: the goal's
 path tolerance, else the node's default); a trajectory that cannot be carried within it is
 refused before anything moves, naming the joint, the point, the bound and the least segment the
 bus needs.
+
+The moves' profiles over time (a trapezoid from rest to rest, a drive's profile from the speed
+it has) are move_profile.py's.
 """
 
 from __future__ import annotations
@@ -52,101 +43,19 @@ import dataclasses
 import math
 from typing import Collection, Sequence
 
-# A trapezoid needs a * T^2 >= 4 * d (the triangle: accelerate half the time, brake the other
-# half). A segment within this fraction of that bound is refused too: the drives quantize the
-# profile, and a profile at the very edge would arrive late.
-EDGE_MARGIN = 0.98
-# The plan's ramps use this much of each joint's max_acceleration when the segment allows, so an
-# axis whose move goes out late (behind others on one serial line) can still catch up.
-PLAN_FRACTIONS = (0.7, EDGE_MARGIN)
-# Velocity-continuous joints: ramps at PLAN_FRACTIONS[0] of the joint's max_acceleration, or at
-# this many times the plan's largest acceleration of the joint where that is steeper (at most
-# EDGE_MARGIN of it). One value per joint and trajectory, for speeding up and slowing down
-# alike: the X-PLUS MT loads Profile Acceleration (1046) only when a move starts from rest and
-# uses it both ways (§13 "Multi-Set-Point Mode", "Registers 1046-1047"), the RD4 then writes
-# its ramps once, and a stop of the drive brakes as fast as a rest-to-rest move's would.
-RAMP_SHAPE = 1.5
-
-
-class TrajectoryError(ValueError):
-    """The trajectory cannot be followed; str() names the joint, the point and the limit."""
-
-
-@dataclasses.dataclass(frozen=True)
-class JointLimits:
-    """One joint's limits in drive units (steps, steps/s, steps/s^2)."""
-
-    min_steps: float
-    max_steps: float
-    max_velocity_steps_s: float
-    max_acceleration_steps_s2: float
-    steps_per_unit: float = 1.0      # for messages in joint units (rad or m)
-    unit: str = 'rad'
-    # A drive that jumps to velocities up to this without ramps (X-PLUS MT §13 "Motion
-    # Profiles": start-stop at PV <= 16000 Hz); 0: every move ramps.
-    start_stop_steps_s: float = 0.0
-    # The least speed the drive runs a move at (Vector Step: 0.01 rev/s, the resolution of
-    # 0x6081; X-MIND K: 1 Hz); a slower segment runs at this speed and arrives early. 0: none.
-    min_velocity_steps_s: float = 0.0
-
-
-@dataclasses.dataclass(frozen=True)
-class Point:
-    time_s: float                    # from the trajectory's start
-    positions_steps: tuple[float, ...]
-    # the planned velocities [steps/s] and accelerations [steps/s^2] where the message has them
-    velocities_steps_s: tuple[float, ...] = ()
-    accelerations_steps_s2: tuple[float, ...] = ()
-
-
-@dataclasses.dataclass(frozen=True)
-class Trajectory:
-    joints: tuple[str, ...]
-    points: tuple[Point, ...]
-
-
-@dataclasses.dataclass(frozen=True)
-class AxisMove:
-    """One axis's part of one segment: a move to `target_steps` with this profile, starting
-    `start_delay_s` after the segment's start (when its move reaches the drive: on a serial
-    line, after the moves of the axes before it and its own transactions)."""
-
-    joint: str
-    target_steps: float
-    velocity_steps_s: float
-    acceleration_steps_s2: float
-    start_delay_s: float = 0.0
-    # A velocity-continuous move (None: rest to rest): the point it passes at the segment's end
-    # (target_steps is then the next point where the joint goes on the same way), and the
-    # planned position and velocity (signed) of the joint when it takes effect, start_delay_s
-    # (< 0: before the segment starts) into the segment.
-    via_steps: float | None = None
-    entry_steps: float = 0.0
-    entry_velocity_steps_s: float = 0.0
-    start_stop_steps_s: float = 0.0      # its drive's (JointLimits): no ramps at or below
-    deceleration_steps_s2: float = 0.0   # a continuous move's; 0: acceleration_steps_s2
-
-    def state(self, tau_s: float) -> tuple[float, float]:
-        """Planned (position, velocity) of a continuous move tau_s after it took effect."""
-        v, ss = self.velocity_steps_s, self.start_stop_steps_s
-        return motion_state(self.entry_steps, self.entry_velocity_steps_s, self.target_steps,
-                            v, ramps(self.acceleration_steps_s2, v, ss), tau_s,
-                            ramps(self.deceleration_steps_s2 or self.acceleration_steps_s2, v,
-                                  ss))
-
-
-@dataclasses.dataclass(frozen=True)
-class Segment:
-    """From `start_s` to `end_s` (trajectory time): the moves that start together at start_s,
-    to the trajectory's point `point`; `merged` points before it were merged into it."""
-
-    start_s: float
-    end_s: float
-    moves: tuple[AxisMove, ...]
-    point: int = -1
-    merged: int = 0
-    # per joint, how far the plan passes from the points merged into this segment [steps]
-    deviation_steps: tuple[tuple[str, float], ...] = ()
+# (motion_state and along: other modules import them from here too)
+from .continuous import continuous_moves
+from .move_profile import along, along_velocity
+from .segments import (  # noqa: F401 - the plan's types: callers of the planner take them here
+    EDGE_MARGIN,
+    PLAN_FRACTIONS,
+    AxisMove,
+    JointLimits,
+    Point,
+    Segment,
+    Trajectory,
+    TrajectoryError,
+)
 
 
 def build(joints: Sequence[str], times_s: Sequence[float],
@@ -320,21 +229,14 @@ def plan(traj: Trajectory, start_steps: dict[str, float], limits: dict[str, Join
     at its start one after the other on each bus, so each axis starts later by the moves
     before it and its own; its profile is planned for the time left then.
 
-    `continuous`: joints followed velocity-continuously (the module's docstring), from
+    `continuous`: joints followed velocity-continuously (continuous.py), from
     `start_velocity_steps_s` (a trajectory that takes over from a running one; else at rest)."""
     tol = path_tolerance_steps or {}
     lines = move_times_s or {}
     cont = [j for j in traj.joints if j in continuous]
     stepwise = {j: limits[j] for j in traj.joints if j not in cont}
     due = [(k, p) for k, p in enumerate(traj.points) if p.time_s > from_s]
-    for k, point in due:                             # points already past: JTC drops them too
-        for joint, target in zip(traj.joints, point.positions_steps):
-            lim = limits[joint]
-            if not lim.min_steps <= target <= lim.max_steps:
-                raise TrajectoryError(
-                    f'{joint}: point {k} at {target / lim.steps_per_unit:g} {lim.unit} is '
-                    f'outside min_position..max_position ({lim.min_steps / lim.steps_per_unit:g}'
-                    f'..{lim.max_steps / lim.steps_per_unit:g} {lim.unit})')
+    _check_positions(traj.joints, due, limits)      # points already past: JTC drops them too
     # the last segment: at least min_segment_s, half that where every joint is continuous (a
     # move that goes out late there only shifts its speed change; a longer tail would pass far
     # from the points where the plan slows down)
@@ -384,9 +286,25 @@ def plan(traj: Trajectory, start_steps: dict[str, float], limits: dict[str, Join
             i = j + 1
             break
     if cont and segments:
-        segments = _continuous(traj, segments, start_steps, limits, cont,
-                               start_velocity_steps_s or {})
+        # continuous.py imports this module's types as it loads: imported here, at the call,
+        # so that the two do not import each other at module level
+        segments = continuous_moves(traj, segments, start_steps, limits, cont,
+                                    start_velocity_steps_s or {})
     return _bounded(traj, segments, start_steps, from_s, limits, tol, min_segment_s)
+
+
+def _check_positions(joints: Sequence[str], due: Sequence[tuple[int, Point]],
+                     limits: dict[str, JointLimits]) -> None:
+    """TrajectoryError at the first of the `due` points (index, point) that puts a joint
+    outside its min_position..max_position."""
+    for k, point in due:
+        for joint, target in zip(joints, point.positions_steps):
+            lim = limits[joint]
+            if not lim.min_steps <= target <= lim.max_steps:
+                raise TrajectoryError(
+                    f'{joint}: point {k} at {target / lim.steps_per_unit:g} {lim.unit} is '
+                    f'outside min_position..max_position ({lim.min_steps / lim.steps_per_unit:g}'
+                    f'..{lim.max_steps / lim.steps_per_unit:g} {lim.unit})')
 
 
 def _average_speeds(joints: list[str], targets: dict[str, float], previous: dict[str, float],
@@ -394,8 +312,8 @@ def _average_speeds(joints: list[str], targets: dict[str, float], previous: dict
                     profiles: dict[str, tuple[float, float]]
                     ) -> dict[str, tuple[float, float]] | Unreachable:
     """`profiles` with the continuous joints' average speeds over the segment (placeholders:
-    _continuous plans their moves); Unreachable where one is above its max_velocity (with the
-    margin the ramps need)."""
+    continuous.continuous_moves plans their moves); Unreachable where one is above its
+    max_velocity (with the margin the ramps need)."""
     out = dict(profiles)
     for jn in joints:
         d = abs(targets[jn] - previous[jn])
@@ -407,91 +325,6 @@ def _average_speeds(joints: list[str], targets: dict[str, float], previous: dict
                                f'{duration_s:g} s (max_velocity is {vmax:.4g} steps/s)')
         out[jn] = (v, limits[jn].max_acceleration_steps_s2)
     return out
-
-
-def ramp_acceleration(traj: Trajectory, joint: str, lim: JointLimits,
-                      start_steps: float | None = None) -> float:
-    """The one acceleration of a continuous joint's ramps (the module's docstring); a drive
-    runs a move start-stop all the same where its speed allows (`ramps`). `start_steps`: where
-    the joint starts, at rest, before the first point."""
-    col = traj.joints.index(joint)
-    pts = list(traj.points)
-    if start_steps is not None and pts and pts[0].time_s > 0:
-        pts.insert(0, Point(0.0, tuple(start_steps if c == col else 0.0
-                                       for c in range(len(traj.joints)))))
-    given = [abs(p.accelerations_steps_s2[col]) for p in pts if p.accelerations_steps_s2]
-    if not given:                                  # from the positions: second differences
-        for a, b, c in zip(pts, pts[1:], pts[2:]):
-            v1 = (b.positions_steps[col] - a.positions_steps[col]) / (b.time_s - a.time_s)
-            v2 = (c.positions_steps[col] - b.positions_steps[col]) / (c.time_s - b.time_s)
-            given.append(abs(v2 - v1) / ((c.time_s - a.time_s) / 2))
-    top = lim.max_acceleration_steps_s2
-    return min(EDGE_MARGIN * top, max(PLAN_FRACTIONS[0] * top,
-                                      RAMP_SHAPE * max(given, default=0.0)))
-
-
-def _continuous(traj: Trajectory, segments: list[Segment], start_steps: dict[str, float],
-                limits: dict[str, JointLimits], joints: list[str],
-                start_velocity: dict[str, float]) -> list[Segment]:
-    """The segments with velocity-continuous moves for `joints` (the module's docstring);
-    TrajectoryError where a joint cannot pass a point in time within its max_velocity."""
-    moves: list[dict[str, AxisMove]] = [{m.joint: m for m in seg.moves} for seg in segments]
-    for joint in joints:
-        col = traj.joints.index(joint)
-        lim = limits[joint]
-        a = ramp_acceleration(traj, joint, lim, start_steps[joint])
-        vias = [traj.points[seg.point].positions_steps[col] for seg in segments]
-        x, u = start_steps[joint], start_velocity.get(joint, 0.0)
-        # the move in effect: (when, entry position, entry velocity, target, cruise)
-        effect: AxisMove | None = None          # the move in effect, since effect_s
-        effect_s = 0.0
-        before = start_steps[joint]
-        for n, seg in enumerate(segments):
-            via = vias[n]
-            moves[n].pop(joint, None)
-            if via == before:
-                continue                                 # holds: braked here before
-            way = 1.0 if via > before else -1.0
-            after = vias[n + 1] if n + 1 < len(vias) else via
-            planned = traj.points[seg.point].velocities_steps_s
-            stops = (after - via) * way <= 0 or (bool(planned) and planned[col] * way <= 0)
-            target = via if stops else after
-            average = (via - before) / (seg.end_s - seg.start_s)
-            if effect is None:
-                at, x_e, u_e = seg.start_s, x, u
-            elif effect.target_steps == effect.via_steps:
-                at, x_e, u_e = seg.start_s, effect.via_steps, 0.0    # at rest on its point
-            else:
-                t_e = effect_s
-                _, u_now = effect.state(seg.start_s - t_e)
-                change = a if abs(average) > abs(u_now) else deceleration(a, lim)
-                quick = ramps(change, max(abs(average), abs(u_now)), lim.start_stop_steps_s)
-                half = 0.0 if u_now == 0.0 else abs(average - u_now) / (2 * quick)
-                at = max(t_e, seg.start_s - half)
-                x_e, u_e = effect.state(at - t_e)
-            if (via - x_e) * way <= 0:       # there already (a fraction of a step): cruise on
-                found = (max(abs(average), lim.min_velocity_steps_s, 1e-3), a, a)
-            else:
-                found = cruise(x_e, u_e, via, target, seg.end_s - at, a, lim)
-            if found is None and effect is None and u_e != 0.0:
-                # taking over a joint at speed that cannot turn in time: planned from rest (it
-                # arrives late; the goal tolerance decides), as a rest-to-rest segment is
-                u_e = 0.0
-                found = cruise(x_e, u_e, via, target, seg.end_s - at, a, lim)
-            if found is None:
-                u_ = lim.steps_per_unit
-                raise TrajectoryError(
-                    f'{joint}: point {seg.point} ({seg.end_s:g} s) cannot be reached in time '
-                    f'from {x_e / u_:.6g} {lim.unit} at {u_e / u_:.4g} {lim.unit}/s with ramps '
-                    f'of {a / u_:.4g} {lim.unit}/s^2 within max_velocity '
-                    f'({lim.max_velocity_steps_s / u_:.4g} {lim.unit}/s)')
-            v, ramp, dec = found
-            effect = moves[n][joint] = AxisMove(joint, target, v, ramp, at - seg.start_s, via,
-                                                x_e, u_e, lim.start_stop_steps_s, dec)
-            effect_s = at
-            before = via
-    return [dataclasses.replace(seg, moves=tuple(ms[j] for j in traj.joints if j in ms))
-            for seg, ms in zip(segments, moves)]
 
 
 def _bounded(traj: Trajectory, segments: list[Segment], start_steps: dict[str, float],
@@ -554,130 +387,6 @@ def planned_at(segments: Sequence[Segment], start_steps: dict[str, float], clock
     return pos, vel
 
 
-def _pieces(x0: float, u0: float, target: float, vmax: float, a: float, dec: float
-            ) -> list[tuple[float, float, float]]:
-    """(duration, velocity at its start, acceleration) of each piece of a drive's move from x0
-    at velocity u0 to `target` with cruise vmax and ramps a (inf: start-stop): a profile
-    generator's, as the simulators' (stepper_sim.core.motion): too fast to stop in time, or moving
-    away, it stops first; then it ramps to vmax (or less: a triangle), cruises, and brakes to
-    rest on the target; speeding up at a, slowing down at dec."""
-    d = target - x0
-    if d == 0.0 and u0 == 0.0:
-        return []
-    s = (d > 0) - (d < 0) or -((u0 > 0) - (u0 < 0))
-    u = u0 * s
-    ia = 0.0 if math.isinf(a) else 0.5 / a
-    idc = 0.0 if math.isinf(dec) else 0.5 / dec
-    distance = abs(d)
-    if u < 0.0 or u * u * idc > distance * (1.0 + 1e-12) + 1e-9:
-        back = (u0 > 0) - (u0 < 0)
-        stop = [] if math.isinf(dec) else [(abs(u0) / dec, u0, -back * dec)]
-        return stop + _pieces(x0 + back * u0 * u0 * idc, 0.0, target, vmax, a, dec)
-    out = []
-    if u > vmax:
-        if not math.isinf(dec):
-            out.append(((u - vmax) / dec, s * u, -s * dec))
-        distance -= (u * u - vmax * vmax) * idc
-        u = vp = vmax
-    elif ia + idc == 0.0:
-        vp = vmax
-    else:
-        vp = max(u, min(vmax, math.sqrt(max((distance + u * u * ia) / (ia + idc), 0.0))))
-        if vp > u and not math.isinf(a):
-            out.append(((vp - u) / a, s * u, s * a))
-        distance -= (vp * vp - u * u) * ia
-    cruise = max(distance - vp * vp * idc, 0.0)
-    if cruise > 0.0 and vp > 0.0:
-        out.append((cruise / vp, s * vp, 0.0))
-    if not math.isinf(dec) and vp > 0.0:
-        out.append((vp / dec, s * vp, -s * dec))
-    return out
-
-
-def motion_state(x0: float, u0: float, target: float, vmax: float, a: float, tau_s: float,
-                 dec: float | None = None) -> tuple[float, float]:
-    """(position, velocity) tau_s after a drive at x0 moving at u0 (signed) took a move to
-    `target` with cruise vmax, acceleration a and deceleration dec (None: a) (_pieces); at rest
-    on the target after the end."""
-    x, t = x0, 0.0
-    if tau_s <= 0:
-        return x0, u0
-    for dur, v, acc in _pieces(x0, u0, target, vmax, a, a if dec is None else dec):
-        if tau_s < t + dur:
-            tau = tau_s - t
-            return x + v * tau + 0.5 * acc * tau * tau, v + acc * tau
-        x += v * dur + 0.5 * acc * dur * dur
-        t += dur
-    return target, 0.0
-
-
-def ramps(a: float, v: float, start_stop_steps_s: float) -> float:
-    """The acceleration a drive runs a move at cruise v with: inf (start-stop, no ramps) at or
-    below its start-stop velocity (X-PLUS MT §13 "Motion Profiles"), else a."""
-    return math.inf if v <= start_stop_steps_s else a
-
-
-def cruise(x0: float, u0: float, via: float, target: float, left_s: float, a: float,
-           lim: JointLimits) -> tuple[float, float, float] | None:
-    """(cruise speed, acceleration, deceleration) of a continuous move (solve_cruise) with
-    ramps of a, else of EDGE_MARGIN of the joint's max_acceleration where a cannot make it (a
-    move gone out late; an X-PLUS MT under way keeps its ramps all the same: it arrives a
-    little late); None where none can within max_velocity."""
-    top = lim.max_acceleration_steps_s2
-    for ramp in (a, EDGE_MARGIN * top):
-        if ramp >= a:
-            dec = deceleration(ramp, lim)
-            v = solve_cruise(x0, u0, via, target, left_s, ramp,
-                             max(lim.min_velocity_steps_s, 1e-3), lim.max_velocity_steps_s,
-                             lim.start_stop_steps_s, dec)
-            if v is not None:
-                return v, ramp, dec
-    return None
-
-
-def deceleration(a: float, lim: JointLimits) -> float:
-    """A continuous move's deceleration: its acceleration (RAMP_SHAPE's comment)."""
-    return a
-
-
-def solve_cruise(x0: float, u0: float, via: float, target: float, left_s: float, a: float,
-                 v_lo: float, v_hi: float, start_stop_steps_s: float = 0.0,
-                 dec: float | None = None) -> float | None:
-    """The least cruise speed in v_lo..v_hi with which a drive at x0 moving at u0, given a move
-    to `target` (beyond `via`, or `via` itself) with ramps a (`ramps`), is at `via` after
-    left_s (the position then grows with the speed: bisection); v_lo where even that gets
-    there; None where v_hi does not."""
-    way = 1.0 if via >= x0 else -1.0
-
-    d = a if dec is None else dec
-
-    def reached(v: float) -> bool:
-        return (motion_state(x0, u0, target, v, ramps(a, v, start_stop_steps_s), left_s,
-                             ramps(d, v, start_stop_steps_s))[0] - via) * way >= -1e-6
-
-    if left_s <= 0:
-        return None
-    if reached(v_lo):
-        return v_lo
-    # start-stop up to start_stop_steps_s, ramps above: each range grows with the speed
-    jump = min(start_stop_steps_s, v_hi)
-    if jump > v_lo and reached(jump):
-        lo, hi = v_lo, jump
-    elif reached(v_hi):
-        lo, hi = max(v_lo, jump), v_hi
-    else:
-        return None
-    for _ in range(50):
-        mid = 0.5 * (lo + hi)
-        if reached(mid):
-            hi = mid
-        else:
-            lo = mid
-        if hi - lo <= 1e-6 * hi:
-            break
-    return hi
-
-
 def _delayed(joints, profiles: dict[str, tuple[float, float]], targets: dict[str, float],
              previous: dict[str, float], duration_s: float, limits: dict[str, JointLimits],
              lines: dict[str, tuple[object, float]]) -> tuple[AxisMove, ...] | Unreachable:
@@ -703,49 +412,6 @@ def _delayed(joints, profiles: dict[str, tuple[float, float]], targets: dict[str
             v, a = again
         moves.append(AxisMove(jn, targets[jn], v, a, delay))
     return tuple(moves)
-
-
-def along(p0: float, p1: float, v: float, a: float, tau: float) -> float:
-    """Position tau into a symmetric trapezoid from p0 to p1 with cruise v and ramps a (inf:
-    start-stop); p1 once it has arrived."""
-    d = abs(p1 - p0)
-    if d == 0 or v <= 0 or a <= 0:
-        return p1
-    sign = 1.0 if p1 > p0 else -1.0
-    t_ramp = 0.0 if math.isinf(a) else v / a
-    total = d / v + t_ramp
-    if tau <= 0:
-        return p0
-    if tau >= total:
-        return p1
-    if t_ramp == 0.0:
-        s = v * tau
-    elif tau < t_ramp:
-        s = 0.5 * a * tau * tau
-    elif tau < total - t_ramp:
-        s = 0.5 * a * t_ramp * t_ramp + v * (tau - t_ramp)
-    else:
-        s = d - 0.5 * a * (total - tau) ** 2
-    return p0 + sign * min(s, d)
-
-
-def along_velocity(p0: float, p1: float, v: float, a: float, tau: float) -> float:
-    """Velocity tau into the trapezoid of `along` (signed, steps/s)."""
-    d = abs(p1 - p0)
-    if d == 0 or v <= 0 or a <= 0 or tau <= 0:
-        return 0.0
-    sign = 1.0 if p1 > p0 else -1.0
-    t_ramp = 0.0 if math.isinf(a) else v / a
-    total = d / v + t_ramp
-    if tau >= total:
-        return 0.0
-    if t_ramp == 0.0:
-        return sign * v
-    if tau < t_ramp:
-        return sign * a * tau
-    if tau < total - t_ramp:
-        return sign * v
-    return sign * a * (total - tau)
 
 
 def sample(traj: Trajectory, start_steps: dict[str, float], t_s: float) -> dict[str, float]:

@@ -336,7 +336,14 @@ class BusOwner(RunningPart, PollingPart, LinkPart):
                 # a pass over the slots to find it
                 now = self.clock()
                 return self._next_wake(now) - now
-        elif rule is Rule.URGENT:
+        else:
+            self._carry_out(d, now)
+        return 0.0
+
+    def _carry_out(self, d: schedule.Decision, now: float) -> None:
+        """One unit of work of a rule other than SLEEP, POLLS and QUIET_CYCLE."""
+        rule = d.rule
+        if rule is Rule.URGENT:
             with self._cv:
                 urgent = self._urgent.popleft() if self._urgent else None
             if urgent is not None:
@@ -363,7 +370,6 @@ class BusOwner(RunningPart, PollingPart, LinkPart):
             self._connect(d.slot)
         elif rule is Rule.DISCONNECTED_CYCLE:
             self._cycle()     # the DISCONNECTED status goes on at the poll rate
-        return 0.0
 
     def _period_s(self) -> float:
         return 1.0 / self.settings['publish_rate_hz']

@@ -17,15 +17,13 @@ import concurrent.futures
 import logging
 import time
 import traceback
-from typing import TYPE_CHECKING, Any, Callable
+from typing import Any, Callable
 
 from ..contract.drive import DriveError, DriveState, IdentityError, State, complete
 from . import slot as slot_rules
 from .commands import Command
 from .jobs import CONNECT, Cancelled, Job, NotConnected, resolve, steps_of
-
-if TYPE_CHECKING:
-    from .slot import Slot
+from .slot import Slot
 
 logger = logging.getLogger('stepper_drivers.owner')
 

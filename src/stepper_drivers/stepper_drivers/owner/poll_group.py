@@ -1,6 +1,6 @@
 """PollGroup: one thread polls the drives of several buses (no rclpy).
 
-A node whose drives sit on several links of a `nonblocking_polls` bus (X-PLUS MT: every drive is
+A node whose drives sit on several links of a NonblockingPolls bus (X-PLUS MT: every drive is
 its own Modbus TCP server) has a bus owner per link (owner/), so that a host that stops
 answering stalls only its own drives. Polled by their owners, eight links cost eight thread
 wake-ups and eight owner passes a poll period; the bare loop that reads the same registers from
@@ -15,7 +15,8 @@ Threads and what they own:
 - This thread owns a lent link (its bus and its lent drives' slots) from lend() to give_back();
   meanwhile the owner waits for it (a command or a stop waits for the poll in flight, as with
   the owner's own polls). It calls the drives only through state_requests() and
-  state_from_replies(), the bus only through send_request(), take_reply() and fileno().
+  state_from_replies() (capabilities.SplitPoll), the bus only through send_request(),
+  take_reply() and fileno() (capabilities.NonblockingPolls).
 - A link whose replies are not complete within REPLY_WAIT_PERIODS of a period (at most the
   bus's timeout_s) is given back unpolled: its owner polls it again at once, with its own
   timeout, after the late reply (one request in flight on a link: ModbusTcpBus), and the link

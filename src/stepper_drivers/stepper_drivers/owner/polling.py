@@ -14,13 +14,12 @@ from __future__ import annotations
 import math
 import threading
 import traceback
-from typing import TYPE_CHECKING, Any, Iterable
+from typing import Any, Iterable
 
+from ..contract.capabilities import CachedState, ChangeCounting, FreshPollState, SplitPoll
 from ..contract.drive import DriveError, DriveState, LinkError, is_operation
 from .schedule import QuietPass, Vouched
-
-if TYPE_CHECKING:
-    from .slot import Slot
+from .slot import Slot
 
 
 class PollingPart:
@@ -78,7 +77,8 @@ class PollingPart:
         returns the object of an earlier poll, its values unchanged, has it stamped again)."""
         state.after_write = slot.poll_seq
         slot.state = state
-        slot.drive.state_fresh_s = self._period_s()      # (the rate can change at run time)
+        if isinstance(slot.drive, FreshPollState):
+            slot.drive.state_fresh_s = self._period_s()  # (the rate can change at run time)
         # when the position was true (the trajectory feedback compares the plan at that time)
         slot.sample = (state, self.clock() if state.measured_at_s is None
                        else state.measured_at_s)
@@ -107,7 +107,7 @@ class PollingPart:
             self._poll_step(slot, now)
             if slot.poll_operation is not None or not slot.connected:
                 return False
-            if not slot.drive.state_from_cache or self.bus.transactions != transactions:
+            if not isinstance(slot.drive, CachedState) or self.bus.transactions != transactions:
                 now = self.clock()                   # a poll on the wire: time passed
                 if horizon is None:
                     horizon = self._next_event_t()
@@ -119,7 +119,7 @@ class PollingPart:
                      ) -> bool:
         """A cycle in which no drive has anything new: every drive of the bus is due, and each
         says its read_state() would give the very state of its last poll
-        (Drive.unchanged_until: a cache that nothing changed since, no frame, no command).
+        (CachedState.unchanged_until: a cache that nothing changed since, no frame, no command).
         Then the polls are that, the cycle's bookkeeping one loop, and its publishing as after
         any cycle. False, with nothing done, at the first drive that is not so (a poll under
         way, a waiter): then the polls go one by one (_poll_step). On 8 idle CANopen drives at
@@ -130,6 +130,8 @@ class PollingPart:
         of _work_once); while the bus counted no change, no job started or ended and that time
         is ahead, the drives are not asked again. Each snapshot counted polled is stamped with
         its drive's write count now."""
+        if not isinstance(self.bus, ChangeCounting):
+            return False                 # nothing tells when a vouching stops holding
         changes = self.bus.changes                   # before what the drives vouch for
         if vouched is not None and vouched.changes == changes and now < vouched.until_t \
                 and vouched.writes == self._writes:  # (no job of any drive since)
@@ -138,6 +140,8 @@ class PollingPart:
             until = math.inf
             for slot in dues:
                 if not slot.connected or slot.poll_operation is not None or slot.poll_waiters:
+                    return False
+                if not isinstance(slot.drive, CachedState):
                     return False
                 t = slot.drive.unchanged_until(slot.state)
                 if t <= now:
@@ -162,7 +166,8 @@ class PollingPart:
         if period != self._fresh_s:        # (the rate can change at run time)
             self._fresh_s = period
             for slot in dues:
-                slot.drive.state_fresh_s = period
+                if isinstance(slot.drive, FreshPollState):
+                    slot.drive.state_fresh_s = period
         self.cycle_unchanged = vouched is not None     # the quiet pass': nothing else since
         try:
             self._cycle()
@@ -257,7 +262,8 @@ class PollingPart:
                     return []                   # the owner's turn: it is awake for it
                 if s.connected and not s.not_driven and s.poll_operation is None \
                         and not s.poll_waiters and (now >= s.next_poll_t or s.poll_requested):
-                    requests = s.drive.state_requests()
+                    requests = s.drive.state_requests() if isinstance(s.drive, SplitPoll) \
+                        else []
                     if requests:
                         out.append((s, requests))
             if out:

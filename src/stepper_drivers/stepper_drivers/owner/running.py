@@ -16,14 +16,12 @@ drive read before the job does not answer for after it.
 from __future__ import annotations
 
 import traceback
-from typing import TYPE_CHECKING, Any, Callable
+from typing import Any, Callable
 
 from ..contract.drive import DriveError, LinkError, is_operation
 from .commands import Command
 from .jobs import CONNECT, Cancelled, Job, NotConnected, Suspended, begin, resolve, split_preempted
-
-if TYPE_CHECKING:
-    from .slot import Slot
+from .slot import Slot
 
 # A watchdog stop that could not be sent is tried again after this long [s].
 WATCHDOG_RETRY_S = 0.1

@@ -42,10 +42,9 @@ from __future__ import annotations
 
 import enum
 import math
-from typing import TYPE_CHECKING, NamedTuple, Sequence
+from typing import NamedTuple, Sequence
 
-if TYPE_CHECKING:
-    from .slot import Slot
+from .slot import Slot
 
 # After this many commands or steps while a poll is overdue, one poll goes first (fairness).
 MAX_JOBS_BEFORE_OVERDUE_POLL = 4
@@ -102,22 +101,29 @@ def poll_due(slot: Slot, now: float) -> bool:
         and (now >= slot.next_poll_t or slot.poll_requested)
 
 
-def decide(slots: Sequence[Slot], now: float, period_s: float, *, events: int, urgent: bool,
-           quiet: QuietPass | None, jobs_since_poll: int, next_timer_t: float,
-           last_cycle_t: float) -> Decision:
-    """The rule that applies now (module docstring), with the drive(s) it applies to."""
-    if quiet is not None and quiet.events == events and not urgent \
-            and quiet.polls_t <= now < quiet.horizon_t:
-        return Decision(Rule.QUIET_CYCLE)
-    if urgent:
-        return Decision(Rule.URGENT)
-    timers = next_timer_t <= now
+class Seen(NamedTuple):
+    """One look at every drive of the bus (`look`): what the rules of `decide` ask about."""
+
+    waiter_due: bool            # a poll waiter's time-out has come
+    check: Slot | None          # the first connected drive not driven or past its watchdog
+    due: Slot | None            # of the connected drives due for a poll, the most overdue
+    dues: list[Slot]            # every connected drive due for a poll
+    step: Slot | None           # the first drive whose running job's next step is due
+    moving: bool                # a job with a due step is a motion
+    poll_step: Slot | None      # the drive whose poll under way is due soonest
+    reconnect: Slot | None      # the first disconnected drive due for a connect
+    queued: bool                # a drive has a job waiting and none running
+    connected: bool             # a drive is connected
+
+
+def look(slots: Sequence[Slot], now: float) -> Seen:
+    """Every drive looked at once (one loop): what `decide` needs of them."""
+    waiter_due = queued = connected = moving = False
     check = due = step = poll_step = reconnect = None
     dues: list[Slot] = []
-    queued = connected = moving = False
     for slot in slots:
-        if slot.poll_waiters and not timers:
-            timers = any(w[0] <= now for w in slot.poll_waiters)
+        if slot.poll_waiters and not waiter_due:
+            waiter_due = any(w[0] <= now for w in slot.poll_waiters)
         if slot.connected:
             connected = True
             if check is None and (slot.not_driven or (
@@ -132,8 +138,7 @@ def decide(slots: Sequence[Slot], now: float, period_s: float, *, events: int, u
                 and slot.active is None and now >= slot.next_connect_t:
             reconnect = slot
         if slot.active is None:
-            if slot.queue:
-                queued = True
+            queued = queued or bool(slot.queue)
         elif slot.active_operation is not None and now >= slot.wake_t:
             if step is None:
                 step = slot
@@ -141,31 +146,47 @@ def decide(slots: Sequence[Slot], now: float, period_s: float, *, events: int, u
         if slot.poll_operation is not None and now >= slot.poll_wake_t \
                 and (poll_step is None or slot.poll_wake_t < poll_step.poll_wake_t):
             poll_step = slot
-    if timers:
+    return Seen(waiter_due, check, due, dues, step, moving, poll_step, reconnect, queued,
+                connected)
+
+
+def decide(slots: Sequence[Slot], now: float, period_s: float, *, events: int, urgent: bool,
+           quiet: QuietPass | None, jobs_since_poll: int, next_timer_t: float,
+           last_cycle_t: float) -> Decision:
+    """The rule that applies now (module docstring), with the drive(s) it applies to: the rules
+    in their order, each one `if`."""
+    if quiet is not None and quiet.events == events and not urgent \
+            and quiet.polls_t <= now < quiet.horizon_t:
+        return Decision(Rule.QUIET_CYCLE)
+    if urgent:
+        return Decision(Rule.URGENT)
+    seen = look(slots, now)
+    due, step, poll_step = seen.due, seen.step, seen.poll_step
+    if next_timer_t <= now or seen.waiter_due:
         return Decision(Rule.TIMERS)
-    if check is not None:
-        return Decision(Rule.NOT_DRIVEN if check.not_driven else Rule.WATCHDOG, check)
+    if seen.check is not None:
+        return Decision(Rule.NOT_DRIVEN if seen.check.not_driven else Rule.WATCHDOG, seen.check)
     if due is not None and now >= due.next_poll_t + period_s \
             and jobs_since_poll >= MAX_JOBS_BEFORE_OVERDUE_POLL:
         return Decision(Rule.OVERDUE_POLL, due)
-    turn = next_turn(slots) if queued else None
-    if poll_step is not None and not moving and (turn is None or not turn.queue[0].motion):
+    turn = next_turn(slots) if seen.queued else None
+    if poll_step is not None and not seen.moving and (turn is None or not turn.queue[0].motion):
         return Decision(Rule.POLL_STEP, poll_step)
     if step is not None:
         if due is not None and now < step.wake_t + period_s:
-            return Decision(Rule.POLLS_BEFORE_STEP, due, dues)
+            return Decision(Rule.POLLS_BEFORE_STEP, due, seen.dues)
         return Decision(Rule.STEP, step)
     if turn is not None:
         if due is not None and jobs_since_poll:
-            return Decision(Rule.POLLS_BEFORE_JOB, due, dues)
+            return Decision(Rule.POLLS_BEFORE_JOB, due, seen.dues)
         return Decision(Rule.START_JOB, turn)
     if poll_step is not None:
         return Decision(Rule.POLL_STEP, poll_step)
-    if reconnect is not None:          # before due polls: they may be due all the time
-        return Decision(Rule.RECONNECT, reconnect)
+    if seen.reconnect is not None:     # before due polls: they may be due all the time
+        return Decision(Rule.RECONNECT, seen.reconnect)
     if due is not None:
-        return Decision(Rule.POLLS, due, dues)
-    if not connected and now >= last_cycle_t + period_s:
+        return Decision(Rule.POLLS, due, seen.dues)
+    if not seen.connected and now >= last_cycle_t + period_s:
         return Decision(Rule.DISCONNECTED_CYCLE)
     return Decision(Rule.SLEEP)
 

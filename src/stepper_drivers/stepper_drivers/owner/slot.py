@@ -20,12 +20,10 @@ import collections
 import concurrent.futures
 import os
 import threading
-from typing import TYPE_CHECKING, Any, Callable
+from typing import Any, Callable
 
 from ..contract.drive import Drive, DriveState, State
-
-if TYPE_CHECKING:
-    from .jobs import Job, Suspended
+from .jobs import Job, Suspended
 
 # A drive whose connect raised IdentityError is connected again after this long, doubling up
 # to IDENTITY_RECHECK_MAX_S (link.py).

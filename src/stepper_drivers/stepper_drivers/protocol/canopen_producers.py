@@ -39,6 +39,7 @@ bus owner (the SYNCs it sends itself, CanBus.send_sync), read by anyone: under i
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import logging
@@ -98,8 +99,7 @@ class Producer:
     'resume <name>', 'quit', 'alive'), and tells `sent(name, t)` and `failed(name, t, text)`."""
 
     def __init__(self, frames: Iterable[Cyclic], send: Callable[[int, bytes], None],
-                 wait: Callable[[float], list[str]],
-                 sent: Callable[[str, float], None],
+                 wait: Callable[[float], list[str]], sent: Callable[[str, float], None],
                  failed: Callable[[str, float, str], None],
                  paused: Callable[[str], None] = lambda name: None,
                  lease_s: float = 0.0, clock: Callable[[], float] = time.monotonic):
@@ -331,8 +331,7 @@ class ProducerProcess:
                     refused = line[len('ready'):].strip()
                     if refused:
                         self._on_refused(refused)
-                    self.link = threading.Thread(target=self._link, name=self.name,
-                                                 daemon=True)
+                    self.link = threading.Thread(target=self._link, name=self.name, daemon=True)
                     self.link.start()
                     return
                 if line.startswith('fatal '):
@@ -404,10 +403,8 @@ class ProducerProcess:
         """Take what the process reported meanwhile (health(): a node whose threads waited for
         the GIL must not see the SYNCs of that time as missing)."""
         if self.proc is not None and self.proc.stdout is not None and not self.failure:
-            try:
+            with contextlib.suppress(OSError, ValueError):      # closed by stop() meanwhile
                 self._read(0.0)
-            except (OSError, ValueError):      # closed by stop() meanwhile
-                pass
 
     def _write(self, command: str) -> None:
         with self._write_lock:
@@ -445,10 +442,8 @@ class ProducerProcess:
             proc.wait()
         for pipe in (proc.stdin, proc.stdout):
             if pipe is not None:
-                try:
+                with contextlib.suppress(OSError):
                     pipe.close()
-                except OSError:
-                    pass
 
 
 # ----------------------------------------------------------------------- the process itself

@@ -213,7 +213,7 @@ class Register:
     """One entry of a Modbus device's register map: pure data, shared by driver and simulator.
 
     `access` is spelt 'ro', 'rw' or 'wo', in lower case as the RD4 manual (§8.1 attribute) and
-    the CANopen object dictionaries (vendors/vector_step_map.py) write it; the X-PLUS MT tables
+    the CANopen object dictionaries (vendors/vector_step/regmap.py) write it; the X-PLUS MT tables
     print it in upper case. `storable` says that the device's save command keeps the register
     in its non-volatile memory: a property of the register, where `saved` would read as a state
     ("has been saved").

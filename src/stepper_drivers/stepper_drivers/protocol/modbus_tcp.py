@@ -25,6 +25,7 @@ import time
 from typing import Any, Mapping
 
 from ..contract import drive
+from ..contract.capabilities import NonblockingPolls
 from .modbus import (  # noqa: F401 - re-exported
     MAX_READ_COUNT,
     MAX_WRITE_COUNT,
@@ -45,12 +46,10 @@ class _Closed(Exception):
     """The peer closed the connection."""
 
 
-class ModbusTcpBus(ModbusBus):
+class ModbusTcpBus(ModbusBus, NonblockingPolls):
     """One TCP connection to a Modbus server; several unit ids may share it. One request at a
     time (the lock): the transaction id of each reply is checked, and a late reply to an earlier
     request that timed out is skipped (counted as `stale_replies`)."""
-
-    nonblocking_polls = True
 
     def __init__(self, host: str = '127.0.0.1', port: int = 502, timeout_s: float = 0.5):
         self.host = host

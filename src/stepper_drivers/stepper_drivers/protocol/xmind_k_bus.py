@@ -3,7 +3,7 @@
 The timing of a transaction comes from the codec (`protocol/xmind_k.py`, §3 of the
 *X-MIND K series Programmer's manual*): the first character of an answer within the request's
 characters + turnaround + RD, a garbled answer repeated, silence repeated only when asked (a busy
-drive is silent). The drive logic (what to send when) is `vendors/xmind_k.py`. No ROS.
+drive is silent). The drive logic (what to send when) is `vendors/xmind_k/`. No ROS.
 """
 
 from __future__ import annotations
@@ -51,10 +51,10 @@ class XmindKBus(drive.Bus):
         self.garbled = 0
         self.broadcasts = 0
         self.failed_in_a_row = 0
-        # Group starts by broadcast (vendors/xmind_k.py, start_together): a 99PS is executed by
-        # every X-MIND K on the line (§2.2.1, §4.2.5), so it needs the user's word that the line
-        # carries only this node's drives (bus parameter broadcast_start, false when not given),
-        # and a probe of the other addresses that none answered.
+        # Group starts by broadcast (vendors/xmind_k/group.py, start_together): a 99PS is
+        # executed by every X-MIND K on the line (§2.2.1, §4.2.5), so it needs the user's word
+        # that the line carries only this node's drives (bus parameter broadcast_start, false
+        # when not given), and a probe of the other addresses that none answered.
         self.broadcast_start = bool(params.get('broadcast_start', False))
         self.line_probe: frozenset[int] | None = None   # addresses that answered a full probe
         self.foreign: set[int] = set()      # addresses not ours that ever answered since open

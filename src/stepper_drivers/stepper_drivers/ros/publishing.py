@@ -1,7 +1,7 @@
 """What a DriveNode publishes: /joint_states, each drive's status, /diagnostics.
 
 The bus owner threads publish (owner.BusOwner's on_cycle; the poll group's thread for
-the owners whose polls it made, poll_group.py): joint_states and the statuses after each poll
+the owners whose polls it made, owner/poll_group.py): joint_states and the statuses after each poll
 cycle of their bus, and /diagnostics when it is due; the executor has no timer and sleeps until a
 command comes. A service or action that awaits the publication of a change (DriveNode.published)
 is answered here, by the thread that published it.
@@ -13,7 +13,7 @@ import concurrent.futures
 import math
 import threading
 import time
-from typing import TYPE_CHECKING, Any
+from typing import Any, Mapping, Protocol
 
 from builtin_interfaces.msg import Time as TimeMsg
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -22,12 +22,10 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from stepper_drivers_msgs.msg import DriveStatus
 
+from ..contract.drive import Vendor
+from ..owner import BusOwner
+from .handle import DriveHandle
 from .joint_state_cdr import JointStateCdr
-
-if TYPE_CHECKING:
-    from ..owner import BusOwner
-    from .node import DriveHandle, DriveNode
-
 
 CLOCK_KIND_CHECK_S = 1.0
 
@@ -41,12 +39,33 @@ def settle(fut: concurrent.futures.Future, value: Any) -> None:
         pass
 
 
+class PublishingHost(Protocol):
+    """What the publishing needs of its node (node.DriveNode): its drives and bus owners, its
+    parameters, and the rclpy Node calls below."""
+
+    handles: Mapping[str, DriveHandle]
+    bus_owners: list[BusOwner]
+    bus_params: Mapping[str, Any]
+    vendor: Vendor
+    managed: bool            # a lifecycle node: lifecycle publishers
+    refusals: int            # of every drive
+    context: Any             # the rclpy Context
+
+    def get_name(self) -> str: ...
+
+    def get_clock(self) -> Any: ...
+
+    def create_publisher(self, *args: Any, **kwargs: Any) -> Any: ...
+
+    def create_lifecycle_publisher(self, *args: Any, **kwargs: Any) -> Any: ...
+
+
 class StatePublisher:
     """The publishers of `node` and what they last sent; every publish runs in an owner
     thread. Built with the node (no ROS entity); `create_publishers` and `add_drive` make the
     publishers with the node's interfaces."""
 
-    def __init__(self, node: 'DriveNode'):
+    def __init__(self, node: PublishingHost):
         self.node = node
         self._js_lock = threading.Lock()       # joint_states: the owner threads take turns
         self._js_cycled: set[int] = set()
@@ -83,7 +102,7 @@ class StatePublisher:
     def _context_shut_down(self) -> None:
         self._context_live = False
 
-    def add_drive(self, h: 'DriveHandle', ns: str) -> None:
+    def add_drive(self, h: DriveHandle, ns: str) -> None:
         """The status publisher of drive h, under the namespace ns (`~/<drive>/`)."""
         self.status_pubs[h.name] = self._publisher(DriveStatus, ns + 'status', 10)
 
@@ -99,7 +118,7 @@ class StatePublisher:
             return self.node.create_lifecycle_publisher(msg_type, topic, qos)
         return self.node.create_publisher(msg_type, topic, qos)
 
-    def publish_states(self, bus_owner: 'BusOwner') -> None:
+    def publish_states(self, bus_owner: BusOwner) -> None:
         """Owner thread, after each poll cycle of its bus, and after a poll that a publish
         waiter awaited (a service or action that changed the drive: `DriveNode.published`): then
         joint_states and that drive's status go out now, whatever is due, and its waiters are
@@ -152,7 +171,7 @@ class StatePublisher:
             self._publish_diagnostics_due(now)
 
     @staticmethod
-    def _answer_publish_waiters(handles: list['DriveHandle'], published: bool) -> None:
+    def _answer_publish_waiters(handles: list[DriveHandle], published: bool) -> None:
         for h in handles:
             waiters, h.publish_waiters = h.publish_waiters, []
             for fut in waiters:
@@ -192,7 +211,7 @@ class StatePublisher:
             ns = time.time_ns()
         return ns // 1_000_000_000, ns % 1_000_000_000
 
-    def _joint_states_due(self, bus_owner: 'BusOwner', now: float) -> bool:
+    def _joint_states_due(self, bus_owner: BusOwner, now: float) -> bool:
         """One joint_states for the node's drives once every bus that has a connected drive
         finished a cycle (a node with eight drive hosts publishes one message a period, not
         eight), or a period after the last one (a bus whose drives are all lost)."""
@@ -230,7 +249,7 @@ class StatePublisher:
                     if all(s.effort is not None for s in states) else None)
             self.joint_pub.publish(cdr.encode(sec, nanosec, *last[2:]))
 
-    def _status_msg(self, h: 'DriveHandle', stamp, counters: dict[str, int]) -> DriveStatus:
+    def _status_msg(self, h: DriveHandle, stamp, counters: dict[str, int]) -> DriveStatus:
         s = h.state
         m = DriveStatus()
         m.header.stamp = stamp

@@ -17,7 +17,7 @@ to it.
 from __future__ import annotations
 
 import concurrent.futures
-from typing import TYPE_CHECKING, Any, Callable
+from typing import Any, Callable, Protocol
 
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from std_srvs.srv import SetBool, Trigger
@@ -27,9 +27,7 @@ from stepper_drivers_msgs.srv import ReadRegister, WriteRegister
 from ..contract.drive import DriveError, DriveState, HomingState, RefusedError
 from ..owner import Cancelled
 from ..owner.commands import Command, CommandRefused, JobKind
-
-if TYPE_CHECKING:
-    from .node import DriveHandle, DriveNode
+from .handle import DriveHandle, JobAwaiter
 
 # Position tolerance for "target reached" in a MoveTo action, in steps.
 TARGET_TOLERANCE_STEPS = 2
@@ -40,13 +38,32 @@ SETTLED_POLLS = 2
 JOB_TIMEOUT_S = 15.0
 
 
+class ServiceHost(JobAwaiter, Protocol):
+    """What the services need of their node (node.DriveNode): its checks
+    and refusals, the awaiting of owner-thread futures, and the rclpy Node calls below."""
+
+    srv_group: Any           # the callback group of services and actions (reentrant)
+    log: Any                 # the node's logger
+
+    def refuse(self, h: DriveHandle, why: str) -> None: ...
+
+    def check_link(self, h: DriveHandle, what: str, safe: bool = False) -> None: ...
+
+    def check_position(self, h: DriveHandle, what: str, position: float,
+                       taken: bool = True) -> int: ...
+
+    def create_service(self, *args: Any, **kwargs: Any) -> Any: ...
+
+    def get_clock(self) -> Any: ...
+
+
 class DriveServices:
     """The services and actions of every drive of `node` (`add_drive` for each drive)."""
 
-    def __init__(self, node: 'DriveNode'):
+    def __init__(self, node: ServiceHost):
         self.node = node
 
-    def add_drive(self, h: 'DriveHandle', ns: str) -> None:
+    def add_drive(self, h: DriveHandle, ns: str) -> None:
         """The services and actions of drive h, under the namespace ns (`~/<drive>/`)."""
         node = self.node
         srv = [(SetBool, 'enable', self.srv_enable), (Trigger, 'stop', self.srv_stop),
@@ -77,7 +94,7 @@ class DriveServices:
                      callback_group=node.srv_group)
 
     # ------------------------------------------------------------------------ awaiting a drive
-    async def _next_poll(self, h: 'DriveHandle', after: int, timeout_s: float = 2.0) -> bool:
+    async def _next_poll(self, h: DriveHandle, after: int, timeout_s: float = 2.0) -> bool:
         """Await the next snapshot of h that followed write number `after` (False: none within
         timeout_s, or the link is lost). Raises Cancelled once the node shuts down: a service
         or action waiting for its drive then answers, rather than loop on polls that will not
@@ -89,10 +106,10 @@ class DriveServices:
             raise Cancelled('the node is shutting down')
         return fresh
 
-    async def _run_job(self, h: 'DriveHandle', command: Command) -> Any:
+    async def _run_job(self, h: DriveHandle, command: Command) -> Any:
         return (await self._command(h, command))[0]
 
-    async def _command(self, h: 'DriveHandle', command: Command) -> tuple[Any, int]:
+    async def _command(self, h: DriveHandle, command: Command) -> tuple[Any, int]:
         """Run `command` on h's drive: (its result, the drive's write count at its end: what
         a snapshot must follow to tell what the command did)."""
         fut = h.bus_owner.submit(h.name, command, hand_over=command.kind == JobKind.URGENT)
@@ -100,18 +117,18 @@ class DriveServices:
         return result, fut.after_write
 
     @staticmethod
-    def _since(h: 'DriveHandle', after: int) -> DriveState | None:
+    def _since(h: DriveHandle, after: int) -> DriveState | None:
         """h's snapshot when it followed write number `after`, else None (what the drive
         did since is not known yet)."""
         state = h.state
         return state if state.after_write >= after else None
 
-    def _state_text(self, h: 'DriveHandle', after: int) -> str:
+    def _state_text(self, h: DriveHandle, after: int) -> str:
         state = self._since(h, after)
         return state.state.value if state is not None else \
             'state not known yet (no snapshot of the drive since the command)'
 
-    async def _respond(self, h: 'DriveHandle', resp, work, ok_message: Callable[[Any], str]):
+    async def _respond(self, h: DriveHandle, resp, work, ok_message: Callable[[Any], str]):
         """Await work(); fill a success/message response; errors become success=false."""
         try:
             result = await work()
@@ -123,7 +140,7 @@ class DriveServices:
         return resp
 
     # ------------------------------------------------------------------------------- services
-    async def srv_enable(self, h: 'DriveHandle', req, resp):
+    async def srv_enable(self, h: DriveHandle, req, resp):
         async def work():
             self.node.check_link(h, 'enable' if req.data else 'disable', safe=not req.data)
             if req.data:
@@ -134,7 +151,7 @@ class DriveServices:
             return self._state_text(h, after)
         return await self._respond(h, resp, work, lambda st: f'{h.name}: {st}')
 
-    async def srv_stop(self, h: 'DriveHandle', req, resp):
+    async def srv_stop(self, h: DriveHandle, req, resp):
         async def work():
             self.node.check_link(h, 'stop', safe=True)
             _, after = await self._command(h, Command.stop(h.drive.stop))
@@ -142,7 +159,7 @@ class DriveServices:
         return await self._respond(h, resp, work,
                                    lambda _: f'{h.name}: stopping with the profile deceleration')
 
-    async def run_homing(self, h: 'DriveHandle', feedback: Callable[[], None] | None = None,
+    async def run_homing(self, h: DriveHandle, feedback: Callable[[], None] | None = None,
                          cancelled: Callable[[], bool] = lambda: False) -> str:
         self.node.check_link(h, 'home')
         if h.state.fault:
@@ -196,16 +213,16 @@ class DriveServices:
                 feedback()
             fresh = await self._next_poll(h, after, 1.0)
 
-    async def _stop_quietly(self, h: 'DriveHandle', why: str) -> None:
+    async def _stop_quietly(self, h: DriveHandle, why: str) -> None:
         try:
             await self._run_job(h, Command.stop(h.drive.stop, f'stop ({why})'))
         except DriveError as e:
             self.node.log.error(f'{h.name}: stop ({why}) failed: {e}')
 
-    async def srv_home(self, h: 'DriveHandle', req, resp):
+    async def srv_home(self, h: DriveHandle, req, resp):
         return await self._respond(h, resp, lambda: self.run_homing(h), lambda msg: msg)
 
-    async def srv_fault_reset(self, h: 'DriveHandle', req, resp):
+    async def srv_fault_reset(self, h: DriveHandle, req, resp):
         async def work():
             if h.slot.identity_recheck:
                 # not driven for its identity: checked again now (a connect, nothing moves)
@@ -227,7 +244,7 @@ class DriveServices:
             return f'fault cleared, state {self._state_text(h, after)}'
         return await self._respond(h, resp, work, lambda text: f'{h.name}: {text}')
 
-    async def srv_save_params(self, h: 'DriveHandle', req, resp):
+    async def srv_save_params(self, h: DriveHandle, req, resp):
         async def work():
             self.node.check_link(h, 'save_params')
             return await self._run_job(h, Command.maintenance(h.drive.save_params,
@@ -235,7 +252,7 @@ class DriveServices:
         return await self._respond(h, resp, work, lambda note: f'{h.name}: parameters saved'
                                    + (f'; {note}' if note else ''))
 
-    async def srv_read_register(self, h: 'DriveHandle', req, resp):
+    async def srv_read_register(self, h: DriveHandle, req, resp):
         resp.value, resp.text = 0, ''
 
         async def work():
@@ -251,7 +268,7 @@ class DriveServices:
         return await self._respond(h, resp, work,
                                    lambda v: f'{req.address} ({req.data_type}) = {v}')
 
-    async def srv_write_register(self, h: 'DriveHandle', req, resp):
+    async def srv_write_register(self, h: DriveHandle, req, resp):
         value = req.text if req.data_type.lower() == 'string' else req.value
 
         async def work():
@@ -266,7 +283,7 @@ class DriveServices:
                                    lambda _: f'{req.address} ({req.data_type}) := {value}')
 
     # -------------------------------------------------------------------------------- actions
-    async def act_move_to(self, h: 'DriveHandle', goal_handle):
+    async def act_move_to(self, h: DriveHandle, goal_handle):
         result = MoveTo.Result()
         target = goal_handle.request.position
         try:
@@ -313,7 +330,7 @@ class DriveServices:
         result.final_position = h.position
         return result
 
-    async def act_home(self, h: 'DriveHandle', goal_handle):
+    async def act_home(self, h: DriveHandle, goal_handle):
         result = Home.Result()
         fb = Home.Feedback()
 

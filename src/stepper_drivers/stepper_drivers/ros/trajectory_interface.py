@@ -1,12 +1,12 @@
 """Trajectories through ROS: `~/joint_trajectory` and `~/follow_joint_trajectory` of a DriveNode.
 
-The action is control_msgs/action/FollowJointTrajectory, so MoveIt's simple controller manager
-and every client written for ros2_controllers' JointTrajectoryController drive the node. The
-semantics are JointTrajectoryController's (see trajectory.py); the following is follow.py's,
+The action is control_msgs/action/FollowJointTrajectory, so MoveIt's simple controller manager and
+every client written for ros2_controllers' JointTrajectoryController drive the node. The semantics
+are JointTrajectoryController's (see motion/trajectory.py); the following is motion/follow.py's,
 through the bus owners. This module checks the goal and converts: joint units to steps with each
-drive's UnitConversion (the one conversion place), the goal's tolerances as JTC resolves them
-(-1 not checked, 0 the default: the constraints.* parameters, > 0 the bound), header stamps to
-the monotonic clock the owners use, and outcomes to the result.
+drive's UnitConversion (the one conversion place), the goal's tolerances as JTC resolves them (-1
+not checked, 0 the default: the constraints.* parameters, > 0 the bound), header stamps to the
+monotonic clock the owners use, and outcomes to the result.
 
 As JTC: a goal the node cannot take when it arrives is REJECTED in the goal callback (the reason
 in the log, with the result code it would have had), so that MoveIt cancels the other parts of
@@ -20,7 +20,7 @@ from __future__ import annotations
 import concurrent.futures
 import math
 import time
-from typing import TYPE_CHECKING
+from typing import Any, Mapping, Protocol
 
 from control_msgs.action import FollowJointTrajectory
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
@@ -40,9 +40,8 @@ from ..motion.follow import (
     Tolerances,
 )
 from ..motion.trajectory import JointLimits, Trajectory, TrajectoryError, build
-
-if TYPE_CHECKING:
-    from .node import DriveHandle, DriveNode
+from ..owner import BusOwner
+from .handle import DriveHandle, JobAwaiter
 
 FEEDBACK_PERIOD_S = 0.1
 ERASE = -1.0              # control_msgs/JointTolerance: "erased", not checked
@@ -51,8 +50,30 @@ CODE_NAMES = {INVALID_GOAL: 'INVALID_GOAL', INVALID_JOINTS: 'INVALID_JOINTS',
               OLD_HEADER_TIMESTAMP: 'OLD_HEADER_TIMESTAMP'}
 
 
+class TrajectoryHost(JobAwaiter, Protocol):
+    """What the trajectory interface needs of its node (node.DriveNode): its joints and bus
+    owners, whether it takes commands, its callback groups and QoS, the awaiting of owner-thread
+    futures, and the rclpy Node calls below."""
+
+    by_joint: Mapping[str, DriveHandle]
+    bus_owners: list[BusOwner]
+    accepting: bool          # commands are taken (a managed node: while active)
+    cmd_group: Any           # the command subscriptions' callback group
+    srv_group: Any           # the services' and actions' callback group
+    command_qos: Any         # the QoS of the command topics
+    log: Any                 # the node's logger
+
+    def lifecycle_state_label(self) -> str: ...
+
+    def create_subscription(self, *args: Any, **kwargs: Any) -> Any: ...
+
+    def get_parameter(self, name: str) -> Any: ...
+
+    def get_clock(self) -> Any: ...
+
+
 class TrajectoryInterface:
-    def __init__(self, node: 'DriveNode'):
+    def __init__(self, node: TrajectoryHost):
         self.node = node
         self.follower = Follower({})
         # goal id -> the run of that goal, while its execute callback awaits it
@@ -68,11 +89,11 @@ class TrajectoryInterface:
                      cancel_callback=self.on_cancel, callback_group=node.srv_group)
 
     # ------------------------------------------------------------------------------ converting
-    def _handle(self, joint: str) -> 'DriveHandle':
+    def _handle(self, joint: str) -> DriveHandle:
         return self.node.by_joint[joint]
 
     @staticmethod
-    def _step_limits(h: 'DriveHandle') -> tuple[int, int]:
+    def _step_limits(h: DriveHandle) -> tuple[int, int]:
         """The steps min_position and max_position are sent as (the nearest ones, as every
         position). A point is within the limits when the step it is sent as is within these:
         MoveIt's interpolation (from + (to - from) * t) ends a plan at a limit up to an ulp
@@ -332,8 +353,9 @@ class TrajectoryInterface:
 
     @staticmethod
     def _code(error: TrajectoryError) -> int:
-        """The result code of a refusal: GoalError carries it; trajectory.py's refusals (times,
-        values, limits, segments, path tolerance of merged points) are all INVALID_GOAL."""
+        """The result code of a refusal: GoalError carries it; motion/trajectory.py's refusals
+        (times, values, limits, segments, path tolerance of merged points) are all
+        INVALID_GOAL."""
         return error.code if isinstance(error, GoalError) else INVALID_GOAL
 
     def on_goal(self, goal) -> GoalResponse:
@@ -403,7 +425,7 @@ class TrajectoryInterface:
         elif outcome.status == 'canceled':
             goal_handle.canceled()     # only on_cancel cancels a run: the goal is CANCELING
         else:
-            goal_handle.abort()        # with a nonzero code (follow.py's aborted outcomes)
+            goal_handle.abort()        # with a nonzero code (motion/follow.py's aborted outcomes)
         self._log_outcome('follow_joint_trajectory', run.done)
         return result
 

@@ -5,7 +5,7 @@ X-PLUS MT (Modbus holding registers 1040/1001) and the AEC Vector Step (CANopen 
 RxPDO/TxPDO). Written once here, on `cia402.Cia402Walker`: the power stage (enable, disable), the
 preconditions of a motion command (`_require_enabled`, `_ensure_mode`), the start edge of the
 modes that run while controlword bit 4 is high and the fault reset. The modes of operation are
-`cia402_modes` objects the vendor lists in `MODES` (registered in `self.modes` by code): each
+`modes` objects the vendor lists in `MODES` (registered in `self.modes` by code): each
 knows its start and stop and its statusword bits. A vendor class gives its object access
 (`_read_statusword`, `_write_controlword` and how it reads and writes the mode and the target)
 and its quirks through the hook methods below, each named for the step of the skeleton it takes.
@@ -60,7 +60,7 @@ class Cia402Drive(Drive):
     DISABLE_LEAVES: tuple[State, ...] = FAULT_STATES
     # _require_enabled's refusal; {what}: the command, {state}: cia402.describe(statusword).
     NOT_ENABLED_TEXT = '{what}: drive is in {state}, not OPERATION ENABLED; enable first'
-    # The modes of operation of the manual (cia402_modes objects), self.modes by code.
+    # The modes of operation of the manual (modes.py objects), self.modes by code.
     MODES: tuple[Mode, ...] = ()
     # start_edge writes the low level even when bit 4 is low already (False: only when it is
     # high or not known).
@@ -192,7 +192,7 @@ class Cia402Drive(Drive):
     def start_edge(self, base_cw: int, bits: int) -> Operation[None]:
         """Controlword bit 4 rising edge, then held high (`bits` includes bit 4): the homing
         operation start and the start of the modes that run while bit 4 is high
-        (cia402_modes.EdgeStartMode). The low level `base_cw` first when bit 4 is high or not
+        (modes.EdgeStartMode). The low level `base_cw` first when bit 4 is high or not
         known (always with START_EDGE_LOW_ALWAYS) and the controlword -> statusword delay, so
         the drive sees the edge; then `base_cw | bits`."""
         cw = self.cia.controlword

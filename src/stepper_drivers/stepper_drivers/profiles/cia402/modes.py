@@ -4,7 +4,7 @@ One class per mode, as ros2_canopen's canopen_402_driver has (a mode object per 
 operation value, registered with the motor): each knows its code (0x6060; X-PLUS MT register
 1041, §12 "Mode of Operation"), its name for messages, what controlword bit 4 starts in it, what
 the "operation mode specific" statusword bits 12 and 13 mean in it, how a run is started and how
-it is stopped. A `cia402_drive.Cia402Drive` lists the modes its manual has (`MODES`) and gives the
+it is stopped. A `drive.Cia402Drive` lists the modes its manual has (`MODES`) and gives the
 object access and its quirks through its hooks; a mode that is not CiA 402 (the AEC JOG of the
 Vector Step) derives from `Mode` in its vendor module.
 
@@ -19,14 +19,23 @@ Controlword bit 4 and statusword bits 12/13 per mode (CiA 402 0x6040/0x6041; X-P
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 from ...contract.drive import HomingState, Operation, is_operation
 from . import state_machine as cia402
 from .state_machine import CW_BIT_HALT, CW_BIT_NEW_SET_POINT, CW_ENABLE_OPERATION, CW_MODE_BITS
 
-if TYPE_CHECKING:
-    from .drive import Cia402Drive
+
+class ModeDrive(Protocol):
+    """What a mode needs of the drive that runs it (drive.Cia402Drive): its state walker, the
+    set-point handshake's time-out, the start edge and the homing start check."""
+
+    cia: cia402.Cia402Walker
+    HANDSHAKE_TIMEOUT_S: float
+
+    def start_edge(self, base_cw: int, bits: int) -> Operation[None]: ...
+
+    def _homing_started(self, mode: HomingMode) -> None | Operation[None]: ...
 
 
 class Mode:
@@ -73,7 +82,7 @@ class ProfilePositionMode(Mode):
     SW_BIT_12 = 'set-point acknowledge'
     SW_BIT_13 = 'following error'
 
-    def start(self, drive: Cia402Drive) -> Operation[int]:
+    def start(self, drive: ModeDrive) -> Operation[int]:
         """New set point, absolute (bit 6 = 0), change set immediately (bit 5): bit 4 up, wait
         for statusword bit 12, bit 4 down (Cia402Walker.start_set_point); the statusword."""
         return (yield from drive.cia.start_set_point(
@@ -87,7 +96,7 @@ class EdgeStartMode(Mode):
 
     START_BITS = CW_BIT_NEW_SET_POINT   # the bits the start sets with bit 4
 
-    def start_edge(self, drive: Cia402Drive) -> Operation[None]:
+    def start_edge(self, drive: ModeDrive) -> Operation[None]:
         yield from drive.start_edge(CW_ENABLE_OPERATION, self.START_BITS)
 
 
@@ -119,7 +128,7 @@ class HomingMode(EdgeStartMode):
         """The statusword no longer says "not started" (bits 13/12/10 = 0/0/1)."""
         return self.state(sw) != HomingState.IDLE
 
-    def start(self, drive: Cia402Drive) -> Operation[None]:
+    def start(self, drive: ModeDrive) -> Operation[None]:
         """The start edge, then the drive's check that homing runs (`_homing_started`)."""
         yield from self.start_edge(drive)
         started = drive._homing_started(self)

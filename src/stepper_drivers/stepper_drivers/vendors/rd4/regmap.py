@@ -1,6 +1,6 @@
 """Lika RD4 ROTADRIVE (Modbus RTU) register map, Control Word / Status word bits, alarm texts.
 
-Pure data, shared by the driver (`vendors/rd4.py`) and the simulator (`stepper_sim/rd4/sim.py`).
+Pure data, shared by the driver (`vendors/rd4/`) and the simulator (`stepper_sim/rd4/sim.py`).
 Source: the manual `lika_rd4_modbus_rtu.txt` (User's guide, RS-485 version, document 1.3 for
 HW-SW 2-4): §8.1.1 machine data (holding registers, FC03/06/16), §8.1.2 input registers (FC04),
 §10 default parameters list, §4.4.2 dip-switch table, §6.4 speed and travel limits.

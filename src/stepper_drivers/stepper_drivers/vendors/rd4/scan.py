@@ -42,6 +42,23 @@ def add_options(p) -> tuple[float, float]:
 
 def scan(args, deadline: Deadline) -> list[BusResult]:
     ids = parse_ids(args.ids, 1, 247, '--ids')
+    bauds, parities = _settings(args)
+    results: list[BusResult] = []
+    problems: list[str] = []
+    for parity in parities:
+        for baud in bauds:
+            if deadline.over() or (results and not args.all_settings):
+                break
+            result = _scan_setting(args, ids, deadline, baud, parity, problems)
+            if result is not None:
+                results.append(result)
+    if not results and problems:
+        logger.info('rd4 scan problems: %s', problems)
+    return results
+
+
+def _settings(args) -> tuple[list[int], list[str]]:
+    """The baud rates and parities to try (--baudrate, --parity), or ScanUsageError."""
     try:
         bauds = [int(b) for b in args.baudrate.split(',')]
     except ValueError:
@@ -55,55 +72,57 @@ def scan(args, deadline: Deadline) -> list[BusResult]:
     for p in parities:
         if p not in ('N', 'E', 'O'):
             raise ScanUsageError(f'--parity: {p!r} (allowed: N, E, O)')
-    results: list[BusResult] = []
-    problems: list[str] = []
-    for parity in parities:
-        for baud in bauds:
-            if deadline.over() or (results and not args.all_settings):
-                break
-            stopbits = 2 if parity == 'N' else 1              # §7.3.1 11-bit characters
-            setting = f'{baud} 8{parity}{stopbits}'
-            bus = ModbusRtuBus(args.port, baud, parity, stopbits, timeout_s=args.timeout,
-                               retries=0)
-            try:
-                bus.open()
-            except LinkError as e:
-                if 'parity' not in str(e):     # missing, busy, no permission: no use going on
-                    raise ScanError(f'scan rd4: {e}') from None
-                problems.append(str(e))         # a pty refuses E/O: try the other settings
-                print(f'scan rd4: {e}', file=sys.stderr)
-                continue
-            found: list[Found] = []
-            progress = Progress(f'rd4 {args.port} {setting}', len(ids))
-            try:
-                for unit in deadline.each(ids):
-                    try:
-                        baud_reg, node_reg, sw, hw = bus.read_input_registers(
-                            unit, *rm.IDENTITY_BLOCK)
-                    except LinkError:
-                        progress.step(f'unit {unit}')
-                        continue
-                    except DriveError as e:
-                        found.append(Found(unit, {'answer': f'exception: {e}'},
-                                           notes=[f'unit {unit} answers FC04 0x0C with an '
-                                                  'exception: not an RD4?']))
-                        progress.step(f'unit {unit}', len(found))
-                        continue
-                    found.append(_found(bus, unit, baud_reg, node_reg, sw, hw))
-                    progress.step(f'unit {unit}', len(found))
-            finally:
-                progress.end()
-                bus.close()
-            if bus.crc_errors or bus.mismatches:
-                problems.append(f'{setting}: {bus.crc_errors} CRC errors, {bus.mismatches} '
-                                'replies that did not match: units may be set to another baud '
-                                'rate/parity, or two units share an id')
-                print(f'scan rd4: {problems[-1]}', file=sys.stderr)
-            if found:
-                results.append(_result(args.port, baud, parity, found))
-    if not results and problems:
-        logger.info('rd4 scan problems: %s', problems)
-    return results
+    return bauds, parities
+
+
+def _scan_setting(args, ids: list[int], deadline: Deadline, baud: int, parity: str,
+                  problems: list[str]) -> BusResult | None:
+    """The units that answer at one baud rate and parity, None when none does; what went wrong
+    with the line goes to `problems` (and stderr)."""
+    stopbits = 2 if parity == 'N' else 1              # §7.3.1 11-bit characters
+    setting = f'{baud} 8{parity}{stopbits}'
+    bus = ModbusRtuBus(args.port, baud, parity, stopbits, timeout_s=args.timeout, retries=0)
+    try:
+        bus.open()
+    except LinkError as e:
+        if 'parity' not in str(e):     # missing, busy, no permission: no use going on
+            raise ScanError(f'scan rd4: {e}') from None
+        problems.append(str(e))         # a pty refuses E/O: try the other settings
+        print(f'scan rd4: {e}', file=sys.stderr)
+        return None
+    progress = Progress(f'rd4 {args.port} {setting}', len(ids))
+    try:
+        found = _probe_units(bus, ids, deadline, progress)
+    finally:
+        progress.end()
+        bus.close()
+    if bus.crc_errors or bus.mismatches:
+        problems.append(f'{setting}: {bus.crc_errors} CRC errors, {bus.mismatches} '
+                        'replies that did not match: units may be set to another baud '
+                        'rate/parity, or two units share an id')
+        print(f'scan rd4: {problems[-1]}', file=sys.stderr)
+    return _result(args.port, baud, parity, found) if found else None
+
+
+def _probe_units(bus: ModbusRtuBus, ids: list[int], deadline: Deadline,
+                 progress: Progress) -> list[Found]:
+    """FC04 of the identity block (§8.1.2) at each unit id until the deadline."""
+    found: list[Found] = []
+    for unit in deadline.each(ids):
+        try:
+            baud_reg, node_reg, sw, hw = bus.read_input_registers(unit, *rm.IDENTITY_BLOCK)
+        except LinkError:
+            progress.step(f'unit {unit}')
+            continue
+        except DriveError as e:
+            found.append(Found(unit, {'answer': f'exception: {e}'},
+                               notes=[f'unit {unit} answers FC04 0x0C with an '
+                                      'exception: not an RD4?']))
+            progress.step(f'unit {unit}', len(found))
+            continue
+        found.append(_found(bus, unit, baud_reg, node_reg, sw, hw))
+        progress.step(f'unit {unit}', len(found))
+    return found
 
 
 def _result(port: str, baud: int, parity: str, found: list[Found]) -> BusResult:

@@ -1,7 +1,7 @@
 """AEC Vector Step (CANopen DS-301 V4.01 / DSP-402 V1.1): objects, codes and texts, as data.
 
-Shared by the driver (`vector_step.py`) and the simulator (`stepper_sim/vector_step/sim.py`); no
-state, no I/O, no rclpy. Section names in comments are the manual's own headings
+Shared by the driver (`vendors/vector_step/`) and the simulator (`stepper_sim/vector_step/`);
+no state, no I/O, no rclpy. Section names in comments are the manual's own headings
 (`aec_vector_step_canopen_it.txt`, rev.09 March 2024), e.g. `# [PRE-DEFINED ERROR FIELD]`.
 Texts are English renderings of the manual's Italian; the Italian original is kept beside them
 where the manual gives one (`text_it`).

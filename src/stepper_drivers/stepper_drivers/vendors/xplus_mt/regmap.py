@@ -1,6 +1,6 @@
 """R.T.A. X-PLUS MT (B4/S4) Modbus TCP register map: pure data and the 32-bit word codec.
 
-Shared by the driver (`vendors/xplus_mt.py`) and the simulator (`stepper_sim/xplus_mt/sim.py`);
+Shared by the driver (`vendors/xplus_mt/`) and the simulator (`stepper_sim/xplus_mt/sim.py`);
 no behaviour lives here. Source: manual `rta_xplus_mt_modbus_tcp.txt`, Appendix 1 "Registers
 Complete Table" (App.1) merged with the chapter-13 tables (T15 configuration/identification/
 service, T16 motion, T20 drive settings, T25 I/O, T26 homing). Defaults come from App.1; where

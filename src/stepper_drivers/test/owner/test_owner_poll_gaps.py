@@ -20,6 +20,9 @@ import threading
 import time
 
 import pytest
+from rigs_owner_vendors import Rd4, VectorStep, XmindK, XplusMt
+from rigs_vector_step import params as vector_step_params
+from rigs_xmind_k import Rig as XmindKRig
 from stepper_drivers.contract.drive import Homing, Motion, is_operation
 from stepper_drivers.owner import BusOwner
 from stepper_drivers.owner.commands import Command
@@ -31,9 +34,6 @@ from stepper_sim.harness import wait_for
 from stepper_sim.rd4.sim import Rd4DriveSim, RtuLine
 from stepper_sim.vector_step.sim import NodeConfig, VectorStepSim
 from stepper_sim.xplus_mt.sim import XplusMtDriveConfig, XplusMtSim
-from test_identity_recheck import Rd4, VectorStep, XmindK, XplusMt
-from test_vector_step_drive import params as vector_step_params
-from test_xmind_k_drive import Rig as XmindKRig
 
 JOB_S = 1.5            # drive A's jobs run back to back this long
 FED_S = 0.5            # B's watchdog is fed this long after A's jobs began, then left to expire
@@ -107,7 +107,7 @@ class Timeline:
 
 
 # ----------------------------------------------------------- the vendors' rigs, two drives
-# test_identity_recheck.py's rigs with a second drive on the same line, port or CAN bus (each
+# rigs_owner_vendors.py's rigs with a second drive on the same line, port or CAN bus (each
 # simulator serves several); their close() is reused. The serial lines answer as late as a
 # real line at their baud rate (line_timing): a poll of an RD4 at 19200 baud and a string of an
 # X-MIND K at 9600 baud take their real 10-50 ms.

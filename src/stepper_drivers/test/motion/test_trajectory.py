@@ -1,14 +1,14 @@
-"""trajectory.py: the checks and the synchronized segments, without ROS."""
+"""motion/trajectory.py: the checks and the synchronized segments, without ROS."""
 
 import math
 
 import pytest
+from stepper_drivers.motion.move_profile import motion_state
 from stepper_drivers.motion.trajectory import (
     EDGE_MARGIN,
     JointLimits,
     TrajectoryError,
     build,
-    motion_state,
     plan,
     planned_at,
     sample,

@@ -1,9 +1,10 @@
 """BusOwner without ROS: order, preemption, the velocity watchdog, link loss, shutdown.
 
-The drives here are a scripted implementation of the Drive interface (`ScriptDrive`): each call
-takes one "transaction" of TX_S on a shared line and is recorded with its time, so the tests
-see the order in which calls reached the wire. The vendor drives are tested against their
-simulators elsewhere; this file tests the scheduling that sits above all of them.
+The drives here are a scripted implementation of the Drive interface (`ScriptDrive`,
+rigs_owner.py): each call takes one "transaction" of TX_S on a shared line and is recorded with
+its time, so the tests see the order in which calls reached the wire. The vendor drives are
+tested against their simulators elsewhere; this file tests the scheduling that sits above all
+of them.
 """
 
 from __future__ import annotations
@@ -14,10 +15,10 @@ import threading
 import time
 
 import pytest
+from rigs_owner import RATE_HZ, TX_S, Line, ScriptDrive
 from stepper_drivers import owner
+from stepper_drivers.contract.capabilities import CachedState
 from stepper_drivers.contract.drive import (
-    Bus,
-    Drive,
     DriveError,
     DriveState,
     IdentityError,
@@ -36,115 +37,6 @@ from stepper_drivers.owner import (
 )
 from stepper_drivers.owner.commands import Command
 from stepper_sim.harness import fifo_allowed, wait_for
-
-TX_S = 0.01            # one transaction on the scripted line
-RATE_HZ = 20.0         # poll rate: a 50 ms period, much longer than a transaction
-
-
-class Line(Bus):
-    description = 'scripted line'
-
-    def __init__(self):
-        self.open_ = False
-        self.wire: list[tuple[float, str, str, tuple]] = []   # (t, drive, call, args)
-        self.lock = threading.Lock()
-
-    def open(self):
-        self.open_ = True
-
-    def close(self):
-        self.open_ = False
-
-    @property
-    def is_open(self):
-        return self.open_
-
-    def transact(self, drive: str, call: str, *args):
-        """One transaction: it takes TX_S and is on the wire when it starts."""
-        with self.lock:
-            self.wire.append((time.monotonic(), drive, call, args))
-        time.sleep(TX_S)
-
-    def calls(self, drive=None, call=None):
-        with self.lock:
-            return [w for w in self.wire if (drive is None or w[1] == drive)
-                    and (call is None or w[2] == call)]
-
-
-class ScriptDrive(Drive):
-    def __init__(self, bus: Line, name: str, params=None):
-        super().__init__(bus, name, params or {})
-        self.line = bus
-        self.fail: dict[str, Exception] = {}     # call name -> exception to raise once
-        self.fail_always: dict[str, Exception] = {}
-        self.velocity = 0.0
-        self.enabled = True
-        self.measured_at_s = None              # DriveState.measured_at_s of the next polls
-        self.on_read = None          # called once, inside the next read_state()
-
-    def _tx(self, call, *args):
-        exc = self.fail.pop(call, None) or self.fail_always.get(call)
-        self.line.transact(self.name, call, *args)
-        if exc is not None:
-            raise exc
-
-    def connect(self):
-        self._tx('connect')
-        return {'serial_number': '7'}
-
-    def read_state(self):
-        self._tx('read_state')
-        if self.on_read is not None:
-            on_read, self.on_read = self.on_read, None
-            on_read()
-        return DriveState(state=State.OPERATION_ENABLED, enabled=self.enabled,
-                          moving=self.velocity != 0.0, velocity_steps_s=self.velocity,
-                          measured_at_s=self.measured_at_s)
-
-    def enable(self):
-        for _ in range(5):               # a state-machine walk: five transactions
-            self._tx('enable step')
-            yield TX_S
-        self.enabled = True
-
-    def disable(self):
-        self._tx('disable')
-        self.enabled = False
-        self.velocity = 0.0
-
-    def move_to(self, target_steps, motion):
-        self._tx('move_to', target_steps)
-
-    def set_velocity(self, velocity_steps_s, motion):
-        self.velocity = velocity_steps_s    # the write reaches the drive, even if its reply
-        self._tx('set_velocity', velocity_steps_s)   # is then lost
-
-    def stop(self, quick=False):
-        self._tx('stop')
-        self.velocity = 0.0
-
-    def start_homing(self, homing):
-        for i in range(20):              # a long homing start: 20 steps of 50 ms
-            self._tx('homing step', i)
-            yield 0.05
-        return ''
-
-    def fault_reset(self):
-        self._tx('fault_reset')
-        return ''
-
-    def save_params(self):
-        for i in range(10):
-            self._tx('save step', i)
-            yield 0.05
-        return 'saved'
-
-    def read_register(self, address, data_type):
-        self._tx('read_register', address)
-        return 1
-
-    def write_register(self, address, data_type, value):
-        self._tx('write_register', address, value)
 
 
 def make(n_drives=2, kinds=None, **settings):
@@ -420,11 +312,12 @@ def test_the_owner_sleeps_while_a_connect_waits():
         bus_owner.shutdown(0.5)
 
 
-class CachedDrive(ScriptDrive):
+class CachedDrive(ScriptDrive, CachedState):
     """read_state() from what the drive sent by itself (a CANopen TxPDO cache): no transaction,
-    recorded on the line's record without taking its time."""
+    recorded on the line's record without taking its time. It vouches for nothing."""
 
-    state_from_cache = True
+    def unchanged_until(self, state):
+        return 0.0
 
     def read_state(self):
         with self.line.lock:
@@ -469,8 +362,9 @@ def test_cached_polls_of_a_cycle_run_together_and_an_urgent_job_still_goes_betwe
 
 
 class QuietDrive(CachedDrive):
-    """A cache-reading drive that can say its state is unchanged (Drive.unchanged_until): until
-    `until`, as long as the bus counted no change, as a CANopen drive with no new TxPDO."""
+    """A cache-reading drive that can say its state is unchanged (CachedState.unchanged_until):
+    until `until`, as long as the bus counted no change, as a CANopen drive with no new
+    TxPDO."""
 
     def __init__(self, bus, name, params=None):
         super().__init__(bus, name, params)

@@ -13,6 +13,7 @@ import time
 
 import can
 import pytest
+from rigs_vector_step import params
 from stepper_drivers.contract.drive import (
     DriveError,
     Homing,
@@ -25,6 +26,7 @@ from stepper_drivers.contract.drive import (
 )
 from stepper_drivers.profiles.cia402 import state_machine as cia402
 from stepper_drivers.vendors import vector_step as vs
+from stepper_drivers.vendors.vector_step import pdo as vs_pdo
 from stepper_drivers.vendors.vector_step import regmap as vm
 from stepper_sim.core.socketcand_broker import SocketcandBroker
 from stepper_sim.harness import wait_for as wait
@@ -34,14 +36,6 @@ logging.getLogger('can.interfaces.socketcand.socketcand').setLevel(logging.ERROR
 
 MOTION = Motion(velocity_steps_s=32000.0, acceleration_steps_s2=160000.0,
                 deceleration_steps_s2=160000.0)
-
-
-def params(**over):
-    p = {spec.name: spec.default for spec in vs.PARAMS}
-    p.update({'timeout_s': 0.5, 'steps_per_rev': 3200.0, 'homing.method': 35,
-              'heartbeat_timeout_s': 0.5})
-    p.update(over)
-    return p
 
 
 # SDO upload request of 0x6064:00 (CiA 301 "initiate upload": command 0x40, index, sub-index)
@@ -485,7 +479,7 @@ def test_a_snapshot_waits_for_the_rest_of_a_statusword_burst(bench, monkeypatch)
 
     burst(moving, 1000, -100, 0)
     wait(lambda: snap(d).position_steps == 1000, what="the monitor's TxPDOs")
-    monkeypatch.setattr(vs, 'BURST_SLACK_S', 5.0)       # no race with a loaded machine
+    monkeypatch.setattr(vs_pdo, 'BURST_SLACK_S', 5.0)       # no race with a loaded machine
     burst(attained, 500, 0, vm.RSTSFLG_HOMED, cobs=(0x181,))
     newest_statusword(attained)
     got = {}
@@ -501,7 +495,7 @@ def test_a_snapshot_waits_for_the_rest_of_a_statusword_burst(bench, monkeypatch)
     # then what the late TxPDO carries is read by SDO (here the monitor plays the node, the
     # simulator's link is cut: its answers are scripted), then no wait per poll until the next
     # change
-    monkeypatch.setattr(vs, 'BURST_SLACK_S', 0.3)
+    monkeypatch.setattr(vs_pdo, 'BURST_SLACK_S', 0.3)
     uploads = []
 
     def upload(index, sub):
@@ -551,7 +545,7 @@ def test_a_moving_position_read_by_sdo_keeps_the_time_of_its_answer(bench, monke
 
     burst(moving, 1000)
     wait(lambda: snap(d).position_steps == 1000, what="the monitor's TxPDOs")
-    monkeypatch.setattr(vs, 'BURST_SLACK_S', 0.05)
+    monkeypatch.setattr(vs_pdo, 'BURST_SLACK_S', 0.05)
     answered = []
 
     def upload(index, sub):
@@ -846,7 +840,7 @@ def frames_in_s(bench, lag_s):
     """From a statusword change until every TxPDO it triggers is in and TxPDO2's event timer
     has repeated it once: the lag, the inhibit time, the event timer, the receive thread."""
     return lag_s + (bench.params['tpdo_inhibit_ms'] + bench.params['tpdo_event_timer_ms']) \
-        / 1000.0 + vs.BURST_SLACK_S
+        / 1000.0 + vs_pdo.BURST_SLACK_S
 
 
 @pytest.mark.parametrize('lag_s', [0.0, 0.05, 0.15])

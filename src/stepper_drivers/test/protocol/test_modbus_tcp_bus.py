@@ -11,6 +11,7 @@ from pymodbus.constants import ExcCodes
 from pymodbus.server import ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 import pytest
+from rigs_modbus_tcp import ScriptedServer
 from stepper_drivers.contract.drive import DriveError, LinkError
 from stepper_drivers.protocol.modbus_tcp import ModbusExceptionError, ModbusTcpBus, make_bus
 
@@ -201,32 +202,6 @@ def test_a_connection_reset_by_the_peer_is_a_link_error_in_one_line():
         assert '\n' not in str(err.value)
         assert b.errors == 1
         b.close()
-
-
-class ScriptedServer:
-    """A Modbus TCP server played by hand on a plain socket: `answer(request_adu)` returns the
-    bytes to send back (or None for silence), so late and foreign replies can be staged."""
-
-    def __init__(self, answer):
-        self.listener = socket.create_server(('127.0.0.1', 0))
-        self.port = self.listener.getsockname()[1]
-        self.answer = answer
-        self.thread = threading.Thread(target=self._serve, daemon=True)
-        self.thread.start()
-
-    def _serve(self):
-        peer, _ = self.listener.accept()
-        with peer:
-            while True:
-                adu = peer.recv(260)
-                if not adu:
-                    return
-                reply = self.answer(adu)
-                if reply:
-                    peer.sendall(reply)
-
-    def close(self):
-        self.listener.close()
 
 
 def _fc03_reply(request_adu, value):

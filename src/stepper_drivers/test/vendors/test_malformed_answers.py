@@ -14,6 +14,10 @@ import threading
 
 import can
 import pytest
+from rigs_modbus_tcp import ScriptedServer
+from rigs_vector_step import params as vector_step_params
+from rigs_xmind_k import OtherDevice
+from rigs_xmind_k import Rig as XmindKRig
 from stepper_drivers.contract.drive import DriveError, IdentityError, LinkError, complete
 from stepper_drivers.protocol import modbus_rtu as rtu
 from stepper_drivers.protocol import xmind_k as xk
@@ -23,10 +27,6 @@ from stepper_drivers.vendors.vector_step import regmap as vm
 from stepper_drivers.vendors.xplus_mt import VENDOR as XPLUS_MT
 from stepper_sim.core.socketcand_broker import SocketcandBroker
 from stepper_sim.rd4.sim import Rd4DriveSim, RtuLine
-from test_modbus_tcp_bus import ScriptedServer
-from test_vector_step_drive import params as vector_step_params
-from test_xmind_k_drive import OtherDevice
-from test_xmind_k_drive import Rig as XmindKRig
 
 
 def raised(call):

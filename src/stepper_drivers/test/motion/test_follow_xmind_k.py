@@ -1,9 +1,9 @@
-"""Follower (follow.py) on the X-MIND K simulator with the timing of a 9600 baud line (§3),
-through a real BusOwner, no ROS: the two joints of a trajectory on one line start each
-segment in one instant by one broadcast 99PS where broadcast_start is true and the line probe
-found no other drive (Bus.group_start, vendors/xmind_k.py start_together), else each with its
-own PS, one transaction apart; a stop of one joint during the start leaves it unstarted and
-the run ends aborted with its joints stopped.
+"""Follower (motion/follow.py) on the X-MIND K simulator with the timing of a 9600 baud line (§3),
+through a real BusOwner, no ROS: the two joints of a trajectory on one line start each segment in
+one instant by one broadcast 99PS where broadcast_start is true and the line probe found no other
+drive (capabilities.GroupStarting, vendors/xmind_k/group.py start_together), else each with its own
+PS, one transaction apart; a stop of one joint during the start leaves it unstarted and the run
+ends aborted with its joints stopped.
 
 The truth is the simulator's: the instants its axes began their runs (`motion_starts`) and the
 strings on the wire (its tap).
