@@ -1,4 +1,5 @@
-"""Workspace-level fixtures: loopback-only DDS, a private ROS domain, processes, a ROS client."""
+"""Workspace-level fixtures: loopback-only DDS, a private ROS domain, processes, a ROS client,
+rclpy for nodes built in this process."""
 
 import os
 import pathlib
@@ -52,3 +53,15 @@ def ros():
     client = RosClient()
     yield client
     client.close()
+
+
+@pytest.fixture
+def offline_rclpy(monkeypatch):
+    """rclpy for nodes built in this process (rigs_nodes.make_node), shut down at the end."""
+    import rclpy
+    # These nodes take part in no graph: a later test that asks the graph for a node of the
+    # same name (test_interface_docs) must not find one of these on its way out.
+    monkeypatch.setenv('ROS_AUTOMATIC_DISCOVERY_RANGE', 'OFF')
+    rclpy.init(args=['test'])
+    yield
+    rclpy.try_shutdown()

@@ -179,6 +179,12 @@ def test_the_node_runs_on_the_row_with_the_vendors_rules(installed, monkeypatch)
             assert not r.successful and 'is not a Toy Step method' in r.reason, r.reason
             sim.main('toy0', (1, 2))
             drive = n.handles['axis1'].drive
+            # the contract alone: no optional capability (contract/capabilities.py)
+            from stepper_drivers.contract import capabilities
+            optional = [c for c in vars(capabilities).values() if isinstance(c, type)
+                        and c.__module__ == capabilities.__name__]
+            assert len(optional) >= 8 and not any(
+                isinstance(drive, c) or isinstance(drive.bus, c) for c in optional)
             assert complete(drive.connect()) == {'address': '1'}
             complete(drive.move_to(123, None))
             assert complete(drive.read_state()).position_steps == 123
@@ -190,27 +196,27 @@ def test_the_node_runs_on_the_row_with_the_vendors_rules(installed, monkeypatch)
 
 def test_the_generic_launch_file_starts_the_node_and_with_sim_true_the_simulator(
         installed, monkeypatch):
-    """driver.launch.py vendor:=toy, as `ros2 launch` runs it (test_launch_files' model) with the
+    """driver.launch.py vendor:=toy, as `ros2 launch` runs it (rigs_launch's model) with the
     table that has the row: the toy's executables, from the copied setup.py files (the toy is not
     installed), and its params files."""
-    import test_launch_files as tl
+    import rigs_launch
     tmp, _toy, _sim, _readers = installed
     config = tmp / 'config'
-    for f in tl.CONFIG_DIR.glob('*.yaml'):
+    for f in rigs_launch.CONFIG_DIR.glob('*.yaml'):
         shutil.copy(f, config / f.name)
-    monkeypatch.setattr(tl, 'CONFIG_DIR', config)
+    monkeypatch.setattr(rigs_launch, 'CONFIG_DIR', config)
     scripts = {p: set(console_scripts(tmp / 'src' / p / 'setup.py'))
                for p in ('stepper_drivers', 'stepper_sim')}
 
     def check_installed(package, executable):
         assert executable in scripts[package], f'{package} has no executable {executable}'
 
-    monkeypatch.setattr(tl, 'check_installed', check_installed)
-    monkeypatch.setattr(tl, 'INSTALL', tmp / 'no-install')       # config files: from the tree
+    monkeypatch.setattr(rigs_launch, 'check_installed', check_installed)
+    monkeypatch.setattr(rigs_launch, 'INSTALL', tmp / 'no-install')  # config files: from the tree
     (tmp / 'no-install/stepper_drivers/share/stepper_drivers/config').mkdir(parents=True)
     for f in config.glob('*.yaml'):
         shutil.copy(f, tmp / 'no-install/stepper_drivers/share/stepper_drivers/config' / f.name)
-    launch = tl.ros2_launch
+    launch = rigs_launch.ros2_launch
     assert launch('driver.launch.py', vendor='toy') == {'toy_node': ['config/toy.yaml']}
     assert launch('driver.launch.py', vendor='toy', sim='true') == {
         'toy_sim': ['config/toy_sim.yaml'], 'toy_node': ['config/toy.yaml']}

@@ -9,12 +9,12 @@ reader's history kind, so it is checked here on each vendor's node built in this
 from __future__ import annotations
 
 import pytest
+from rigs_nodes import make_node
 from stepper_drivers.vendors.table import KEYS
-from test_param_rules import make_node, ros  # noqa: F401 - ros is the fixture make_node needs
 
 
 @pytest.mark.parametrize('key', KEYS)
-def test_every_command_subscription_is_reliable_and_keeps_all(ros, key):
+def test_every_command_subscription_is_reliable_and_keeps_all(offline_rclpy, key):
     from rclpy.qos import HistoryPolicy, ReliabilityPolicy
     node = make_node(key)
     try:
@@ -32,7 +32,7 @@ def test_every_command_subscription_is_reliable_and_keeps_all(ros, key):
         node.destroy_node()
 
 
-def test_command_topics_are_served_by_the_hidden_companion_node(ros):
+def test_command_topics_are_served_by_the_hidden_companion_node(offline_rclpy):
     node = make_node('xplus_mt')
     try:
         assert node.cmd_node.get_name() == '_xplus_mt_node_commands'    # hidden: leading _
@@ -46,7 +46,7 @@ def test_command_topics_are_served_by_the_hidden_companion_node(ros):
         node.destroy_node()
 
 
-def test_command_topics_follow_the_nodes_remapping_and_name(ros):
+def test_command_topics_follow_the_nodes_remapping_and_name(offline_rclpy):
     # A launch file's name= is `-r __node:=...`: a global argument that would rename every
     # node of the process; the companion takes none and resolves through the node's rules.
     node = make_node('xplus_mt', '-r', '__node:=arm_drives', '-p', 'drives:=[axis1]', '-r',
@@ -62,7 +62,7 @@ def test_command_topics_follow_the_nodes_remapping_and_name(ros):
 
 
 @pytest.mark.parametrize('key', KEYS)
-def test_every_command_callback_takes_the_samples_message_info(ros, key):
+def test_every_command_callback_takes_the_samples_message_info(offline_rclpy, key):
     """rclpy passes a sample's MessageInfo (its DDS source timestamp) only to a callback that
     takes two arguments: without it a command's age cannot be judged."""
     from rclpy.subscription import Subscription
@@ -74,7 +74,7 @@ def test_every_command_callback_takes_the_samples_message_info(ros, key):
         node.destroy_node()
 
 
-def test_a_command_is_judged_by_the_age_of_its_sample(ros):
+def test_a_command_is_judged_by_the_age_of_its_sample(offline_rclpy):
     """Through the subscriptions' own callbacks, with the MessageInfo rclpy would pass: a
     velocity older than command_timeout_s (0.5 s in config/xplus_mt.yaml) and a position older
     than position_command_max_age_s are refused, naming the age and the parameter; a velocity 0

@@ -12,7 +12,6 @@ JointTrajectoryController does, the reason in the node's log.
 """
 
 import math
-import threading
 import time
 from types import SimpleNamespace
 
@@ -21,72 +20,25 @@ from builtin_interfaces.msg import Duration, Time
 from control_msgs.action import FollowJointTrajectory
 from control_msgs.msg import JointComponentTolerance, JointTolerance
 import pytest
-from rosharness import MIDDLEWARE_S, Procs, RosClient, Track, wait_for
+from rigs_trajectory import (
+    EXECUTION_MARGIN_S,
+    EXECUTION_SCALING,
+    Rd4Shipped,
+    duration,
+    log_lines,
+    logged,
+    quintic,
+    rejected,
+    set_params,
+    unbounded,
+)
+from rigs_vendors import VectorRig, XmindBench, XplusBench
+from rosharness import MIDDLEWARE_S, Procs, RosClient, Track
 from rosharness import TrajectoryGoal as Client
 from std_srvs.srv import Trigger
-from test_rd4_ros import Bench as Rd4Bench
-from test_vector_step_ros import Rig as VectorRig
-from test_xmind_k_ros import Bench as XmindBench
-from test_xplus_mt_ros import Bench as XplusBench
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint, MultiDOFJointTrajectory
 
-# MoveIt's trajectory_execution defaults
-EXECUTION_SCALING = 1.2
-EXECUTION_MARGIN_S = 0.5
 Result = FollowJointTrajectory.Result
-
-
-def duration(t):
-    sec = int(math.floor(t))
-    return Duration(sec=sec, nanosec=int(round((t - sec) * 1e9)))
-
-
-def quintic(joints, start, end, duration_s, dt_s):
-    """MoveIt-like: a straight line from `start` to `end` (rad) with quintic timing, a point
-    every dt_s with positions, velocities and accelerations."""
-    n = int(round(duration_s / dt_s))
-    msg = JointTrajectory(joint_names=list(joints))
-    for k in range(1, n + 1):
-        s, T = k / n, duration_s
-        f = 10 * s ** 3 - 15 * s ** 4 + 6 * s ** 5
-        df = (30 * s ** 2 - 60 * s ** 3 + 30 * s ** 4) / T
-        ddf = (60 * s - 180 * s ** 2 + 120 * s ** 3) / T ** 2
-        msg.points.append(JointTrajectoryPoint(
-            positions=[a + f * (b - a) for a, b in zip(start, end)],
-            velocities=[df * (b - a) for a, b in zip(start, end)],
-            accelerations=[ddf * (b - a) for a, b in zip(start, end)],
-            time_from_start=duration(k * dt_s)))
-    return msg
-
-
-def rejected(bench, goal):
-    """Whether the node rejects `goal` in its goal callback (rclpy's ActionClient as MoveIt's
-    controller handle uses it: the goal response only)."""
-    from rclpy.action import ActionClient
-    client = ActionClient(bench.ros.node, FollowJointTrajectory,
-                          f'{bench.node_ns}/follow_joint_trajectory')
-    try:
-        assert client.wait_for_server(timeout_sec=10)
-        answered = threading.Event()
-        fut = bench.ros.in_spin(client.send_goal_async, goal)
-        fut.add_done_callback(lambda _f: answered.set())
-        assert answered.wait(10), 'no goal response'
-        return not fut.result().accepted
-    finally:
-        bench.ros.in_spin(client.destroy)
-
-
-def log_lines(bench):
-    return bench.node.output().splitlines()
-
-
-def logged(bench, since, *parts, timeout_s=2.0):
-    """The first line of the node's log after line `since` (a len(log_lines())) holding every
-    one of `parts`."""
-    def find():
-        return next((line for line in log_lines(bench)[since:]
-                     if all(p in line for p in parts)), None)
-    return wait_for(find, timeout_s, f'a log line with {parts}')
 
 
 def get_param(bench, name):
@@ -97,37 +49,15 @@ def get_param(bench, name):
     return r.values[0].double_value
 
 
-def set_params(bench, *params):
-    results = bench.set_params(*params)
-    assert all(r.successful for r in results), [r.reason for r in results]
-
-
 def single_point(joints, positions, t_s):
     return JointTrajectory(joint_names=list(joints), points=[JointTrajectoryPoint(
         positions=[float(p) for p in positions], time_from_start=duration(t_s))])
 
 
 # ------------------------------------------------------------------------- the four benches
+# (the RD4's, Rd4Shipped, is in rigs_trajectory.py)
 class XplusShipped(XplusBench):
     pass
-
-
-def unbounded(*joints):
-    """Node arguments that leave the plans of `joints` unbounded (constraints.<joint>.path_bound
-    0): the serial lines' tests here send short fast trajectories (1 rad in 1 s) whose merged
-    segments pass farther than the default bound from the points; the bound has tests of its
-    own (test_trajectory_continuous_ros.py, src/stepper_drivers/test/test_trajectory.py)."""
-    return tuple(x for j in joints for x in ('-p', f'constraints.{j}.path_bound:=0.0'))
-
-
-class Rd4Shipped(Rd4Bench):
-    """Two RD4 on one 19200-baud line with line timing, polled at config/rd4.yaml's 10 Hz."""
-
-    # the simulator shares 2 busy cores
-    node_extra_args = ('-p', 'timeout_s:=0.3', *unbounded('rd4_joint1', 'rd4_joint2'))
-
-    def sim_args(self):
-        return super().sim_args() + ['-p', 'line_timing:=true']
 
 
 class XmindShipped(XmindBench):

@@ -55,7 +55,8 @@ SIM_LAYERS = {'core': (), 'cia402': ('core',)}
 SIM_VENDOR = ('core', 'cia402')
 # protocol modules that are transports (a bus, a line): the simulators do not use them
 # (modbus_rtu holds the RTU frame codec the RD4 simulator answers with, beside its bus)
-TRANSPORTS = ('canopen_link', 'xmind_k_bus', 'ascii_line', 'modbus_tcp')
+TRANSPORTS = ('canopen_link', 'canopen_remote', 'canopen_producers', 'xmind_k_bus', 'ascii_line',
+              'modbus_tcp')
 
 
 def module_name(path: pathlib.Path, package_dir: pathlib.Path) -> str:
@@ -182,6 +183,95 @@ def misplaced_transports() -> list[str]:
 def violations() -> list[str]:
     return [p for module, imported in modules() for p in problems(module, imported)] \
         + misplaced_transports()
+
+
+def import_cycles(graph_of: dict[str, set[str]]) -> list[list[str]]:
+    """The groups of modules that import each other round in a circle (strongly connected
+    components of the import graph; `graph_of`: module -> what it imports, as `imports` reads
+    it, lazy and type-only imports counted), largest first."""
+
+    def module_of(name: str) -> str:
+        while name and name not in graph_of:
+            name = name.rpartition('.')[0]
+        return name
+    graph = {m: {module_of(n) for n in imported} - {m, ''} for m, imported in graph_of.items()}
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    cycles = []
+
+    def visit(v: str) -> None:                       # Tarjan
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        for w in graph[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            group = []
+            while not group or group[-1] != v:
+                group.append(stack.pop())
+            if len(group) > 1:
+                cycles.append(sorted(group))
+    for v in graph:
+        if v not in index:
+            visit(v)
+    return sorted(cycles, key=len, reverse=True)
+
+
+def test_no_module_imports_itself_round_a_circle():
+    """Every import arrow points one way: no group of modules imports each other in a circle,
+    not even lazily (inside a function) or for types only (under TYPE_CHECKING); a module that
+    needs something of the one above it says what in a Protocol of its own."""
+    found = import_cycles(dict(modules()))
+    assert not found, '\n'.join(' -> '.join(c) for c in found)
+
+
+def test_a_circle_through_a_lazy_and_a_type_only_import_is_found(tmp_path):
+    package = tmp_path / 'stepper_drivers'
+    (package / 'motion').mkdir(parents=True)
+    files = {'a': 'def f():\n    from .b import B\n',
+             'b': 'from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from .a import A\n',
+             'c': 'from .a import f\n'}
+    graph = {}
+    for name, text in files.items():
+        (package / 'motion' / f'{name}.py').write_text(text)
+        graph[f'stepper_drivers.motion.{name}'] = imports(package / 'motion' / f'{name}.py',
+                                                          package)
+    assert import_cycles(graph) == [['stepper_drivers.motion.a', 'stepper_drivers.motion.b']]
+    del graph['stepper_drivers.motion.b']
+    assert import_cycles(graph) == []
+
+
+MODULE_MAX_LINES = 600
+CLASS_MAX_LINES = 400
+# A class or module may be longer where its docstring says why, in a sentence with this phrase.
+LONGER_BECAUSE = 'is longer than the limit because'
+
+
+def oversized() -> list[str]:
+    out = []
+    for package_dir in (DRIVERS, SIM):
+        for path in sorted(package_dir.rglob('*.py')):
+            text = path.read_text()
+            tree = ast.parse(text)
+            lines = text.count('\n')
+            if lines > MODULE_MAX_LINES and LONGER_BECAUSE not in (ast.get_docstring(tree) or ''):
+                out.append(f'{path.relative_to(ROOT)}: {lines} lines')
+            for node in ast.walk(tree):
+                if isinstance(node, ast.ClassDef):
+                    size = node.end_lineno - node.lineno + 1
+                    if size > CLASS_MAX_LINES and \
+                            LONGER_BECAUSE not in (ast.get_docstring(node) or ''):
+                        out.append(f'{path.relative_to(ROOT)}: class {node.name} {size} lines')
+    return out
+
+
+def test_no_module_over_600_lines_and_no_class_over_400_unless_it_says_why():
+    found = oversized()
+    assert not found, '\n'.join(found)
 
 
 def test_the_import_graph_runs_only_downwards():

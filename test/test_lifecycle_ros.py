@@ -6,60 +6,15 @@ simulator, driven through the standard lifecycle services as a lifecycle manager
 import time
 
 from lifecycle_msgs.msg import State, Transition
-from lifecycle_msgs.srv import ChangeState, GetAvailableTransitions, GetState
-from pymodbus.client import ModbusTcpClient
+from lifecycle_msgs.srv import ChangeState
 import pytest
+from rigs_lifecycle import XplusLifecycle
+from rigs_vendors import Rd4Bench
 from rosharness import wait_for
 from std_srvs.srv import SetBool
-from test_rd4_ros import Bench as Rd4Bench
-from test_xplus_mt_ros import Bench as XplusBench
 
 SOD_MASK, SOD = 0x004F, 0x0040          # CiA 402 status word: SWITCH ON DISABLED
 STATUS_RATE_HZ = 1.0                    # status_rate_hz: config/xplus_mt.yaml leaves the default
-
-
-class XplusLifecycle(XplusBench):
-    node_executable = 'xplus_mt_lifecycle_node'
-    wait_connected = False
-
-    # ------------------------------------------------------------------ lifecycle services
-    def state(self):
-        return self.ros.call(GetState, f'{self.node_ns}/get_state', GetState.Request()) \
-            .current_state
-
-    def transitions(self):
-        r = self.ros.call(GetAvailableTransitions, f'{self.node_ns}/get_available_transitions',
-                          GetAvailableTransitions.Request())
-        return {t.transition.label for t in r.available_transitions}
-
-    def change(self, transition_id):
-        req = ChangeState.Request()
-        req.transition.id = transition_id
-        return self.ros.call(ChangeState, f'{self.node_ns}/change_state', req,
-                             timeout_s=30.0).success
-
-    # ------------------------------------------------------------------------ the drive
-    def statusword(self, unit=1):
-        """Register 1001 read by a Modbus client of its own (a second client, as an HMI)."""
-        c = ModbusTcpClient('127.0.0.1', port=self.port)
-        assert c.connect()
-        try:
-            return c.read_holding_registers(1001, count=1, device_id=unit).registers[0]
-        finally:
-            c.close()
-
-    def joint_states_within(self, seconds):
-        """Whether a joint_states message arrives within `seconds`."""
-        return self.message_within('/joint_states', seconds)
-
-    def message_within(self, topic, seconds):
-        with self.ros.lock:
-            self.ros.latest.pop(topic, None)
-        try:
-            self.ros.wait_msg(topic, timeout_s=seconds)
-            return True
-        except AssertionError:
-            return False
 
 
 @pytest.fixture

@@ -11,12 +11,12 @@ from __future__ import annotations
 import time
 
 import pytest
+from rigs_nodes import make_node
 from stepper_drivers.vendors.table import KEYS
-from test_param_rules import make_node, ros  # noqa: F401 - ros is the fixture make_node needs
 
 
 @pytest.mark.parametrize('key', KEYS)
-def test_the_executor_has_no_periodic_work(ros, key):
+def test_the_executor_has_no_periodic_work(offline_rclpy, key):
     node = make_node(key)
     try:
         assert [t.timer_period_ns for t in node.timers] == []
@@ -24,7 +24,7 @@ def test_the_executor_has_no_periodic_work(ros, key):
         node.destroy_node()
 
 
-def test_stamps_are_the_system_time_or_the_simulated_time(ros):
+def test_stamps_are_the_system_time_or_the_simulated_time(offline_rclpy):
     node = make_node('xplus_mt')
     try:
         before = time.time_ns()
@@ -41,7 +41,7 @@ def test_stamps_are_the_system_time_or_the_simulated_time(ros):
         node.destroy_node()
 
 
-def test_diagnostics_values_are_reused_only_while_unchanged(ros):
+def test_diagnostics_values_are_reused_only_while_unchanged(offline_rclpy):
     node = make_node('xplus_mt')
     try:
         first = node.publishing.key_values('n: axis1', [('state', 'READY'), ('position', 0.5)])

@@ -18,7 +18,7 @@ import subprocess
 import sys
 
 import pytest
-from rosharness import CONFIG
+from rigs_nodes import make_node
 from stepper_drivers.vendors.table import BY_KEY, KEYS
 
 # vendor, parameter, a value its rules refuse, a value they take, words of the refusal
@@ -33,38 +33,13 @@ CASES = [
 ]
 
 
-@pytest.fixture
-def ros(monkeypatch):
-    import rclpy
-    # These nodes take part in no graph: a later test that asks the graph for a node of the
-    # same name (test_interface_docs) must not find one of these on its way out.
-    monkeypatch.setenv('ROS_AUTOMATIC_DISCOVERY_RANGE', 'OFF')
-    rclpy.init(args=['test'])
-    yield
-    rclpy.try_shutdown()
-
-
-def make_node(key: str, *ros_args: str, vendor=None):
-    """The DriveNode of `key` with config/<key>.yaml and more ROS arguments; the node layer uses
-    rclpy's default context, so the args are given to it as to rclpy.init."""
-    import rclpy
-    from stepper_drivers.ros.node import DriveNode
-    from stepper_drivers.ros.params import declare_all
-    module = importlib.import_module(BY_KEY[key].module)
-    vendor = vendor or module.VENDOR
-    args = ['test', '--ros-args', '--params-file', str(CONFIG / f'{key}.yaml'), *ros_args]
-    rclpy.try_shutdown()
-    rclpy.init(args=args)
-    return DriveNode(vendor, f'{key}_node',
-                     lambda n: declare_all(n, vendor, args, module.validate))
-
-
 def ros_value(value) -> str:
     return repr(value) if isinstance(value, float) else str(value)
 
 
 @pytest.mark.parametrize('key, name, bad, good, words', CASES)
-def test_run_time_change_is_refused_by_the_start_up_rule(ros, key, name, bad, good, words):
+def test_run_time_change_is_refused_by_the_start_up_rule(offline_rclpy, key, name, bad, good,
+                                                         words):
     from rclpy.parameter import Parameter
     from stepper_drivers.ros.params import ParameterError
     with pytest.raises(ParameterError) as start_up:
@@ -90,7 +65,7 @@ def counting(fn, calls: list):
     return wrapper
 
 
-def test_run_time_checks_build_nothing_and_leave_the_x_mind_k_bus_alone(ros):
+def test_run_time_checks_build_nothing_and_leave_the_x_mind_k_bus_alone(offline_rclpy):
     """The X-MIND K drive records its address in bus.addresses when it is made: a check that
     makes drives can change the live bus. The run-time check makes none (it did before)."""
     from rclpy.parameter import Parameter
@@ -133,7 +108,7 @@ def test_the_x_mind_k_rules_refuse_one_address_twice_from_the_parameters_alone()
 
 
 @pytest.mark.parametrize('key', KEYS)
-def test_the_rules_of_a_config_file_are_met_and_pure(ros, key):
+def test_the_rules_of_a_config_file_are_met_and_pure(offline_rclpy, key):
     """Every shipped params file meets validate(); validate changes nothing it is given."""
     from stepper_drivers.ros.params import current_values, validate
     module = importlib.import_module(BY_KEY[key].module)

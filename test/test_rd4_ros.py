@@ -12,7 +12,9 @@ import time
 
 from diagnostic_msgs.msg import DiagnosticStatus
 import pytest
-from rosharness import DriveBench, Track, bad_parameter_output, wait_for, watchdog_bound_s
+from rigs_ros2_control import RAMP_RAD, RAMP_S, PluginStream, quintic
+from rigs_vendors import Rd4Bench, Rd4LineTimingBench
+from rosharness import Track, bad_parameter_output, wait_for, watchdog_bound_s
 from std_srvs.srv import SetBool
 from stepper_drivers_msgs.msg import DriveStatus
 from stepper_drivers_msgs.srv import ReadRegister, WriteRegister
@@ -21,57 +23,9 @@ NODE = '/rd4_node'
 STEPS_PER_RAD = 1024 / (2 * math.pi)       # Distance per revolution [0x00] = 1024
 
 
-class Bench(DriveBench):
-    """The simulator on a fresh pty and the node on its symlink, plus ROS helpers."""
-
-    vendor = 'rd4'
-    node_extra_args = (
-        '-p', 'publish_rate_hz:=20.0',
-        # the simulator is a Python process on a shared 2-core machine: a reply can be later
-        # than the 0.1 s a real line needs (config/rd4.yaml), and no test is about that
-        '-p', 'timeout_s:=0.3',
-        '-p', 'drives.axis1.allow_raw_write:=true')   # the shipped params refuse raw writes
-
-    def __init__(self, procs, ros, tmp_path, node_args=()):
-        self.port = str(tmp_path / 'rd4.pty')
-        self.storage = tmp_path / 'flash'
-        super().__init__(procs, ros, node_args)
-
-    def link_args(self):
-        return ['-p', f'port:={self.port}']
-
-    def sim_args(self):
-        return ['-p', f'storage_dir:={self.storage}']
-
-    def true_steps(self, drive, steps=None):
-        """The simulated unit's position counter (rounded as Current position reports it);
-        with `steps`: wait until it reads that (the topic lags the status by up to 50 ms)."""
-        cond = (lambda m: True) if steps is None else (lambda m: round(m.data) == steps)
-        return round(self.ros.wait_msg(self.true_topic(drive), cond,
-                                       what=f'{drive} true position {steps}').data)
-
-    def link_values(self):
-        diag = self.ros.wait_msg('/diagnostics', lambda a: any(
-            s.name.endswith('link') for s in a.status))
-        link = next(s for s in diag.status if s.name.endswith('link'))
-        return {kv.key: kv.value for kv in link.values}
-
-    def settled(self, drive, period_s=0.3):
-        """Wait until the true position stops changing (bounded)."""
-        last = [None]
-
-        def still():
-            self.ros.latest.pop(self.true_topic(drive), None)   # a fresh sample each time
-            now = self.ros.wait_msg(self.true_topic(drive)).data
-            same, last[0] = now == last[0], now
-            return same
-        wait_for(still, 10.0, f'{drive} at rest', period_s)
-        return round(last[0])
-
-
 @pytest.fixture
 def bench(procs, ros, tmp_path):
-    return Bench(procs, ros, tmp_path)
+    return Rd4Bench(procs, ros, tmp_path)
 
 
 def test_two_units_start_safe_and_enable_does_not_move(bench):
@@ -267,7 +221,7 @@ def test_bad_parameter_fails_start_up_with_one_line(procs, tmp_path):
 def test_a_unit_that_does_not_answer_leaves_the_others_working(procs, ros, tmp_path):
     """Node id 9 is configured but absent from the line (powered off): it is DISCONNECTED and
     retried; the two present units connect and move; diagnostics say which one is missing."""
-    bench = Bench(procs, ros, tmp_path, node_args=(
+    bench = Rd4Bench(procs, ros, tmp_path, node_args=(
         '-p', 'drives:=[axis1,axis2,axis3]', '-p', 'drives.axis3.node_id:=9'))
     ros.subscribe(DriveStatus, f'{NODE}/axis3/status')
     st = bench.status('axis3', what='axis3 status')
@@ -307,21 +261,13 @@ def test_a_wrong_identity_is_not_driven_and_fault_reset_checks_it_again_at_once(
     assert bench.status('axis2').connected
 
 
-class LineTimingBench(Bench):
-    """The simulator's line timing: replies come as late as on a real 19200-baud line."""
-
-    def sim_args(self):
-        return super().sim_args() + ['-p', 'line_timing:=true']
-
-
 def test_a_joint_command_stream_for_both_units_moves_both_while_it_runs(procs, ros, tmp_path):
     """ros2_control's topic interface streams both joints in one sensor_msgs/JointState at
     100 Hz on /joint_command (a quintic ramp of 1 rad over 2 s from where they stand). On the
     19200-baud line a unit's move takes longer than 10 ms, so each unit's newer set point
     replaces its waiting one; the units take turns on the line, so both follow the ramp while
     it runs: neither stands still until the stream ends."""
-    from test_ros2_control_stream import RAMP_RAD, RAMP_S, PluginStream, quintic
-    bench = LineTimingBench(procs, ros, tmp_path)
+    bench = Rd4LineTimingBench(procs, ros, tmp_path)
     drives = ('axis1', 'axis2')
     for d in drives:
         bench.enable(d)

@@ -13,10 +13,9 @@ import math
 from builtin_interfaces.msg import Duration
 from control_msgs.action import FollowJointTrajectory
 import pytest
+from rigs_vendors import Rd4Bench, XmindBench
 from rosharness import TrajectoryGoal
 from std_srvs.srv import SetBool, Trigger
-from test_rd4_ros import Bench as Rd4Bench
-from test_xmind_k_ros import Bench as XmindBench
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 RD4_STEPS_PER_RAD = 1024 / (2 * math.pi)

@@ -168,6 +168,59 @@ def check_launch(text: str, ns_of: dict[str, str], file_of: dict[str, str],
         problems.append(f'launch: no Node for {BY_KEY[key].node}')
 
 
+def check_hardware(root: ET.Element, name: str, problems: list[str]) -> str | None:
+    """A block's type, rate, plugin and parameters; its namespace (None: its topics are not
+    /<ns>/joint_command and /<ns>/joint_states of one namespace)."""
+    if root.tag != 'ros2_control' or root.get('type') != 'system':
+        problems.append(f'block {name}: not <ros2_control type="system">')
+    if root.get('rw_rate') is not None and not root.get('rw_rate').isdigit():
+        problems.append(f'block {name}: rw_rate {root.get("rw_rate")!r}: a positive integer')
+    hw = root.find('hardware')
+    plugin = hw.findtext('plugin') if hw is not None else None
+    if plugin != PLUGIN:
+        problems.append(f'block {name}: plugin {plugin!r}, not {PLUGIN!r}')
+    params = {p.get('name'): (p.text or '').strip()
+              for p in (hw.findall('param') if hw is not None else [])}
+    unknown = set(params) - {'joint_commands_topic', 'joint_states_topic',
+                             'trigger_joint_command_threshold', 'sum_wrapped_joint_states'}
+    if unknown:
+        problems.append(f'block {name}: parameters the plugin does not have: {unknown}')
+    try:
+        float(params.get('trigger_joint_command_threshold', ''))
+    except ValueError:
+        problems.append(f'block {name}: trigger_joint_command_threshold is no number')
+    m = re.fullmatch(r'(/[\w/]+)/joint_command', params.get('joint_commands_topic', ''))
+    ns = m[1] if m else None
+    if ns is None or params.get('joint_states_topic') != f'{ns}/joint_states':
+        problems.append(f'block {name}: topics {params.get("joint_commands_topic")!r} and '
+                        f'{params.get("joint_states_topic")!r} are not /<ns>/joint_command '
+                        'and /<ns>/joint_states of one namespace')
+        return None
+    return ns
+
+
+def check_block_joints(root: ET.Element, name: str, ns: str, key: str,
+                       problems: list[str]) -> list[tuple]:
+    """A block's joints against config/<key>.yaml and the interfaces the vendor has:
+    [(name, command interfaces, state interfaces)]."""
+    joints = [(j.get('name'), [c.get('name') for c in j.findall('command_interface')],
+               [s.get('name') for s in j.findall('state_interface')])
+              for j in root.findall('joint')]
+    want = config(key)[1]
+    if [j for j, _c, _s in joints] != want:
+        problems.append(f'block {name} ({ns}): joints {[j for j, _c, _s in joints]}, '
+                        f'config/{key}.yaml has {want}')
+    if len({tuple(c) for _j, c, _s in joints}) > 1:
+        problems.append(f'block {name}: the joints have different command interfaces')
+    for j, cmd, state in joints:
+        if not cmd or not set(cmd) <= INTERFACES or 'position' not in state \
+                or not set(state) <= INTERFACES:
+            problems.append(f'block {name}: joint {j}: command {cmd}, state {state}')
+        if key in NO_VELOCITY_STATE and 'velocity' in state:
+            problems.append(f'block {name}: joint {j}: {key} reports no velocity')
+    return joints
+
+
 def check_urdf(text: str, ns_of: dict[str, str], problems: list[str]) -> dict[str, dict]:
     """{block name: {'key', 'joints': [(name, command interfaces, state interfaces)]}}."""
     vendor_of_ns = {ns: key for key, ns in ns_of.items()}
@@ -177,57 +230,41 @@ def check_urdf(text: str, ns_of: dict[str, str], problems: list[str]) -> dict[st
             continue
         root = ET.fromstring(block)
         name = root.get('name')
-        if root.tag != 'ros2_control' or root.get('type') != 'system':
-            problems.append(f'block {name}: not <ros2_control type="system">')
-        if root.get('rw_rate') is not None and not root.get('rw_rate').isdigit():
-            problems.append(f'block {name}: rw_rate {root.get("rw_rate")!r}: a positive integer')
-        hw = root.find('hardware')
-        plugin = hw.findtext('plugin') if hw is not None else None
-        if plugin != PLUGIN:
-            problems.append(f'block {name}: plugin {plugin!r}, not {PLUGIN!r}')
-        params = {p.get('name'): (p.text or '').strip()
-                  for p in (hw.findall('param') if hw is not None else [])}
-        unknown = set(params) - {'joint_commands_topic', 'joint_states_topic',
-                                 'trigger_joint_command_threshold', 'sum_wrapped_joint_states'}
-        if unknown:
-            problems.append(f'block {name}: parameters the plugin does not have: {unknown}')
-        try:
-            float(params.get('trigger_joint_command_threshold', ''))
-        except ValueError:
-            problems.append(f'block {name}: trigger_joint_command_threshold is no number')
-        m = re.fullmatch(r'(/[\w/]+)/joint_command', params.get('joint_commands_topic', ''))
-        ns = m[1] if m else None
-        if ns is None or params.get('joint_states_topic') != f'{ns}/joint_states':
-            problems.append(f'block {name}: topics {params.get("joint_commands_topic")!r} and '
-                            f'{params.get("joint_states_topic")!r} are not /<ns>/joint_command '
-                            'and /<ns>/joint_states of one namespace')
+        ns = check_hardware(root, name, problems)
+        if ns is None:
             continue
         key = vendor_of_ns.get(ns)
         if key is None:
             problems.append(f'block {name}: namespace {ns} is none a run line starts a node in '
                             f'({sorted(vendor_of_ns)})')
             continue
-        joints = [(j.get('name'), [c.get('name') for c in j.findall('command_interface')],
-                   [s.get('name') for s in j.findall('state_interface')])
-                  for j in root.findall('joint')]
-        want = config(key)[1]
-        if [j for j, _c, _s in joints] != want:
-            problems.append(f'block {name} ({ns}): joints {[j for j, _c, _s in joints]}, '
-                            f'config/{key}.yaml has {want}')
-        if len({tuple(c) for _j, c, _s in joints}) > 1:
-            problems.append(f'block {name}: the joints have different command interfaces')
-        for j, cmd, state in joints:
-            if not cmd or not set(cmd) <= INTERFACES or 'position' not in state \
-                    or not set(state) <= INTERFACES:
-                problems.append(f'block {name}: joint {j}: command {cmd}, state {state}')
-            if key in NO_VELOCITY_STATE and 'velocity' in state:
-                problems.append(f'block {name}: joint {j}: {key} reports no velocity')
+        joints = check_block_joints(root, name, ns, key, problems)
         if any(b['key'] == key for b in out.values()):
             problems.append(f'{key}: two blocks')
         out[name] = {'key': key, 'joints': joints}
     for key in set(ns_of) - {b['key'] for b in out.values()}:
         problems.append(f'{key}: started in {ns_of[key]} but no <ros2_control> block')
     return out
+
+
+def check_jtc(name: str, p: dict, joints: list[str], block: dict, problems: list[str]) -> None:
+    """A JointTrajectoryController's interfaces against its block's, and its constraints."""
+    for j, cmd, state in block['joints']:
+        if not set(p.get('command_interfaces', [])) <= set(cmd) or \
+                not p.get('command_interfaces'):
+            problems.append(f'{name}: command_interfaces {p.get("command_interfaces")}, '
+                            f'{j} declares {cmd}')
+        if not set(p.get('state_interfaces', [])) <= set(state) or \
+                'position' not in p.get('state_interfaces', []):
+            problems.append(f'{name}: state_interfaces {p.get("state_interfaces")}, {j} '
+                            f'declares {state}')
+    for k, v in p.get('constraints', {}).items():
+        if k in joints:
+            if not set(v) <= JTC_JOINT_CONSTRAINTS:
+                problems.append(f'{name}: constraints.{k}: {set(v)}')
+        elif k not in JTC_CONSTRAINTS:
+            problems.append(f'{name}: constraints.{k} is neither a joint of it nor a JTC '
+                            'constraint')
 
 
 def check_controllers(text: str, blocks: dict[str, dict], problems: list[str]
@@ -260,22 +297,7 @@ def check_controllers(text: str, blocks: dict[str, dict], problems: list[str]
         if block is None:
             problems.append(f'{name}: joints {joints} are the joints of no <ros2_control> block')
             continue
-        for j, cmd, state in block['joints']:
-            if not set(p.get('command_interfaces', [])) <= set(cmd) or \
-                    not p.get('command_interfaces'):
-                problems.append(f'{name}: command_interfaces {p.get("command_interfaces")}, '
-                                f'{j} declares {cmd}')
-            if not set(p.get('state_interfaces', [])) <= set(state) or \
-                    'position' not in p.get('state_interfaces', []):
-                problems.append(f'{name}: state_interfaces {p.get("state_interfaces")}, {j} '
-                                f'declares {state}')
-        for k, v in p.get('constraints', {}).items():
-            if k in joints:
-                if not set(v) <= JTC_JOINT_CONSTRAINTS:
-                    problems.append(f'{name}: constraints.{k}: {set(v)}')
-            elif k not in JTC_CONSTRAINTS:
-                problems.append(f'{name}: constraints.{k} is neither a joint of it nor a JTC '
-                                'constraint')
+        check_jtc(name, p, joints, block, problems)
     for bname, b in blocks.items():
         if [j for j, _c, _s in b['joints']] not in jtcs.values():
             problems.append(f'block {bname}: no JointTrajectoryController for its joints')

@@ -1,7 +1,7 @@
 """No motion that nobody commanded, for every vendor, through ROS.
 
-Each test starts a vendor's simulator and node as processes (the benches of the vendor test
-modules) and judges by the simulator's true position, not by what the node reports:
+Each test starts a vendor's simulator and node as processes (the benches of rigs_vendors.py)
+and judges by the simulator's true position, not by what the node reports:
 - a velocity run whose later commands are refused by the drive is still stopped by the node's
   watchdog within command_timeout_s + two poll periods + the stop ramp;
 - velocity commands from several publishers, each ending with 0.0, leave the drive stopped
@@ -23,50 +23,13 @@ import threading
 import time
 
 import pytest
+from rigs_vendors import DECEL_RAD_S2, RATE_HZ, SIM_TICK_S, TRANSACTION_S, make_bench
 from rosharness import MIDDLEWARE_S, Track, wait_for, watchdog_bound_s
 from std_msgs.msg import Float64
-import test_rd4_ros
-import test_vector_step_ros
-import test_xmind_k_ros
-import test_xplus_mt_ros
 
 VENDORS = ('xplus_mt', 'rd4', 'xmind_k', 'vector_step')
-# steps per rad, velocity for the runs [rad/s], what the drive refuses while it runs
-STEPS_PER_RAD = {'xplus_mt': 12800 / (2 * math.pi), 'rd4': 1024 / (2 * math.pi),
-                 'xmind_k': 2000 / (2 * math.pi), 'vector_step': 3200 / (2 * math.pi)}
+# velocity for the runs [rad/s]
 RUN_RAD_S = {'xplus_mt': 4.0, 'rd4': 4.0, 'xmind_k': 4.0, 'vector_step': 4.0}
-# The bench settings these tests rely on (config/<vendor>.yaml unless the bench overrides it).
-DECEL_RAD_S2 = {'xplus_mt': 200.0, 'rd4': 12.0, 'xmind_k': 400.0, 'vector_step': 200.0}
-RATE_HZ = {'xplus_mt': 50.0, 'rd4': 20.0, 'xmind_k': 20.0, 'vector_step': 50.0}
-# One line transaction: what may be in flight when the watchdog fires (X-MIND K at 9600 baud
-# is the slowest: about 30 ms; a Python simulator on a shared machine answers later).
-TRANSACTION_S = {'xplus_mt': 0.01, 'rd4': 0.05, 'xmind_k': 0.06, 'vector_step': 0.02}
-# The simulators move their axes in ticks: a stop acts at the next one.
-SIM_TICK_S = {'xplus_mt': 0.02, 'rd4': 0.01, 'xmind_k': 0.05, 'vector_step': 0.02}
-
-
-def make_bench(vendor, procs, ros, tmp_path, node_args=(), node_env=None):
-    if vendor == 'vector_step':
-        assert node_env is None, 'the Vector Step rig starts its node by itself'
-        rig = test_vector_step_ros.Rig(tmp_path, node_args=node_args)
-        procs.append(_Closer(rig))
-        return rig
-    module = {'xplus_mt': test_xplus_mt_ros, 'rd4': test_rd4_ros,
-              'xmind_k': test_xmind_k_ros}[vendor]
-    bench = module.Bench
-    if node_env:
-        bench = type(bench.__name__, (bench,), {'node_env': node_env})
-    return bench(procs, ros, tmp_path, node_args=node_args)
-
-
-class _Closer:
-    """Lets the procs fixture end a Vector Step rig (broker, processes, its ROS client)."""
-
-    def __init__(self, rig):
-        self.rig = rig
-
-    def kill(self):
-        self.rig.close()
 
 
 def _run(bench, vendor, drive='axis1'):

@@ -16,9 +16,7 @@ import time
 from action_msgs.msg import GoalStatus
 from control_msgs.action import FollowJointTrajectory
 import pytest
-from rosharness import Procs, RosClient, Track
-from rosharness import TrajectoryGoal as Client
-from test_follow_joint_trajectory_ros import (
+from rigs_trajectory import (
     EXECUTION_MARGIN_S,
     EXECUTION_SCALING,
     Rd4Shipped,
@@ -29,6 +27,8 @@ from test_follow_joint_trajectory_ros import (
     rejected,
     set_params,
 )
+from rosharness import Procs, RosClient, Track
+from rosharness import TrajectoryGoal as Client
 from trajectory_msgs.msg import JointTrajectoryPoint
 
 JOINTS = ('rd4_joint1', 'rd4_joint2')

@@ -19,15 +19,12 @@ from control_msgs.action import FollowJointTrajectory
 from control_msgs.msg import JointTolerance
 from lifecycle_msgs.msg import Transition
 import pytest
+from rigs_lifecycle import XplusLifecycle
+from rigs_trajectory import log_lines, logged, rejected
+from rigs_vendors import Rd4Bench, VectorRig, XmindBench, XplusBench
 from rosharness import MIDDLEWARE_S, ROOT, Track, wait_for
 from rosharness import TrajectoryGoal as Goal
 from stepper_drivers_msgs.msg import DriveStatus
-from test_follow_joint_trajectory_ros import log_lines, logged, rejected
-from test_lifecycle_ros import XplusLifecycle
-from test_rd4_ros import Bench as Rd4Bench
-from test_vector_step_ros import Rig as VectorRig
-from test_xmind_k_ros import Bench as XmindBench
-from test_xplus_mt_ros import Bench as XplusBench
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 RD4_STEPS_PER_RAD = 1024 / (2 * math.pi)

@@ -14,11 +14,9 @@ import time
 import can
 from diagnostic_msgs.msg import DiagnosticStatus
 import pytest
+from rigs_vendors import VectorRig
 from rosharness import (
     MIDDLEWARE_S,
-    DriveBench,
-    Procs,
-    RosClient,
     Track,
     bad_parameter_output,
     wait_for,
@@ -27,69 +25,14 @@ from rosharness import (
 from std_srvs.srv import SetBool
 from stepper_drivers.ros.params import BUS_PARAMS
 from stepper_drivers_msgs.msg import DriveStatus
-from stepper_drivers_msgs.srv import ReadRegister, WriteRegister
-from stepper_sim.core.socketcand_broker import SocketcandBroker
 import yaml
 
 STEPS_PER_RAD = 3200 / (2 * math.pi)
 
 
-class Rig(DriveBench):
-    """Broker, simulator and node for the module, plus helpers to reach them through ROS."""
-
-    vendor = 'vector_step'
-    first_sim_args = ('-p', 'drives.axis2.power_stage_blocked:=true')
-    # The simulator is a Python process on a shared 2-core machine: an SDO answer can come later
-    # than the 0.5 s of config/vector_step.yaml, and no test here is about that.
-    node_extra_args = ('-p', 'timeout_s:=1.5',
-                       '-p', 'drives.axis1.allow_raw_write:=true')   # shipped: refused
-
-    def __init__(self, log_dir, node_args=()):
-        self.storage = log_dir / 'eeprom'
-        self.storage.mkdir()
-        self.broker = SocketcandBroker(port=0)
-        self.broker.start()
-        self.procs, self.ros = Procs(log_dir), RosClient('vector_step_test')
-        try:
-            super().__init__(self.procs, self.ros, node_args)
-        except BaseException:
-            self.close()            # a failed start leaves no process, client or broker behind
-            raise
-
-    def link_args(self):
-        return ['-p', f'can.port:={self.broker.port}']
-
-    def sim_args(self):
-        return ['-p', f'storage_dir:={self.storage}']
-
-    def close(self):
-        self.procs.kill_all()
-        self.ros.close()
-        self.broker.stop()
-
-    def read(self, drive, address, data_type):
-        return self.call(drive, 'read_register',
-                         ReadRegister.Request(address=address, data_type=data_type),
-                         ReadRegister)
-
-    def write(self, drive, address, data_type, value=0, text=''):
-        return self.call(drive, 'write_register',
-                         WriteRegister.Request(address=address, data_type=data_type,
-                                               value=value, text=text), WriteRegister)
-
-    def idle(self, drive):
-        """Leave a drive disabled and without fault for the next test."""
-        st = self.status(drive)
-        if st.fault:
-            self.inject(drive, 'clear_fault')
-            assert self.call(drive, 'fault_reset').success
-        self.enable(drive, False)
-        self.status(drive, lambda m: not m.enabled and not m.moving, what=f'{drive} idle')
-
-
 @pytest.fixture(scope='module')
 def rig(tmp_path_factory):
-    r = Rig(tmp_path_factory.mktemp('vector_step'))
+    r = VectorRig(tmp_path_factory.mktemp('vector_step'))
     yield r
     r.close()
 
@@ -347,7 +290,7 @@ def test_bad_parameter_fails_start_up_with_one_line(procs, tmp_path):
                        '(allowed: an integer from 1 to 127)'), out
 
 
-class SlowTpdoRig(Rig):
+class SlowTpdoRig(VectorRig):
     """TxPDO2..4 50 ms behind TxPDO1, as on a slow or busy bus (at 10-20 kbit/s one TPDO takes
     about 10 ms, and the frames of drives with lower COB-IDs go first)."""
 

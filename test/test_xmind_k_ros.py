@@ -10,49 +10,22 @@ import time
 
 from diagnostic_msgs.msg import DiagnosticStatus
 import pytest
-from rosharness import DriveBench, Track, bad_parameter_output, wait_for, watchdog_bound_s
+from rigs_vendors import XMIND_DRIVES, XmindBench
+from rosharness import Track, bad_parameter_output, wait_for, watchdog_bound_s
 from stepper_drivers_msgs.srv import ReadRegister, WriteRegister
 
 NODE = '/xmind_k_node'
 STEPS_PER_RAD = 2000 / (2 * math.pi)
-DRIVES = ('axis1', 'axis2', 'axis3')
-
-
-class Bench(DriveBench):
-    """A simulator and a node on a private pty symlink, plus helpers to reach them via ROS."""
-
-    vendor = 'xmind_k'
-    drives = DRIVES
-    node_extra_args = (
-        '-p', 'publish_rate_hz:=20.0',
-        '-p', 'timeout_s:=0.25',        # generous: the simulator shares 2 busy cores
-        *[a for d in DRIVES for a in ('-p', f'drives.{d}.busy_poll_period_s:=0.05')],
-        '-p', 'drives.axis1.allow_raw_write:=true')   # the shipped params refuse raw writes
-    keep_status = True
-
-    def __init__(self, procs, ros, tmp_path, line_timing=False, node_args=()):
-        self.link = str(tmp_path / 'xmind_k.tty')
-        self.line_timing = line_timing
-        super().__init__(procs, ros, node_args)
-
-    def link_args(self):
-        return ['-p', f'port:={self.link}']
-
-    def sim_args(self):
-        return ['-p', f'line_timing:={str(self.line_timing).lower()}']
-
-    def set_param(self, name, value):
-        (r,) = self.set_params((name, float(value)))
-        assert r.successful, r.reason
+DRIVES = XMIND_DRIVES
 
 
 @pytest.fixture
 def bench(procs, ros, tmp_path):
-    return Bench(procs, ros, tmp_path)
+    return XmindBench(procs, ros, tmp_path)
 
 
 def test_three_drives_move_home_with_line_timing_and_busy_silence(procs, ros, tmp_path):
-    b = Bench(procs, ros, tmp_path, line_timing=True)
+    b = XmindBench(procs, ros, tmp_path, line_timing=True)
     for d in DRIVES:
         st = b.status(d)
         assert st.vendor == 'X-MIND K' and st.address == f'0{DRIVES.index(d) + 1}'
@@ -323,7 +296,7 @@ def test_a_trajectory_with_broadcast_start_starts_its_joints_by_one_broadcast_pe
     from control_msgs.action import FollowJointTrajectory
     from rosharness import TrajectoryGoal
     from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
-    b = Bench(procs, ros, tmp_path, line_timing=True, node_args=(
+    b = XmindBench(procs, ros, tmp_path, line_timing=True, node_args=(
         '-p', 'broadcast_start:=true', '-p', 'broadcast_probe_wait_ms:=10',
         '-p', 'timeout_s:=0.06'))       # the probe: 45 silent addresses of 10 ms + this each
     wait_for(lambda: 'line probe: no answer' in b.node.output(), 15.0, 'the line probe')

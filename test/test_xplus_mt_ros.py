@@ -12,10 +12,10 @@ import time
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 import pytest
+from rigs_vendors import XplusBench
 from rosharness import (
     CONFIG,
     MIDDLEWARE_S,
-    DriveBench,
     Track,
     bad_parameter_output,
     executable,
@@ -33,28 +33,9 @@ SIM = '/xplus_mt_sim'
 STEPS_PER_RAD = 12800 / (2 * math.pi)
 
 
-class Bench(DriveBench):
-    """A simulator and a node on a free port, plus helpers to reach them through ROS."""
-
-    vendor = 'xplus_mt'
-    node_extra_args = ('-p', 'drives.axis1.allow_raw_write:=true')   # shipped: refused
-
-    def __init__(self, procs, ros, tmp_path, node_args=()):
-        self.port = free_port()
-        self.storage = tmp_path / 'eeprom'
-        self.storage.mkdir()
-        super().__init__(procs, ros, node_args)
-
-    def link_args(self):
-        return ['-p', f'port:={self.port}']
-
-    def sim_args(self):
-        return ['-p', f'storage_dir:={self.storage}']
-
-
 @pytest.fixture
 def bench(procs, ros, tmp_path):
-    return Bench(procs, ros, tmp_path)
+    return XplusBench(procs, ros, tmp_path)
 
 
 def test_start_up_is_safe_and_enable_does_not_move(bench):
@@ -295,7 +276,7 @@ def test_bad_parameter_fails_start_up_with_one_line(procs, tmp_path):
 
 def test_link_cut_during_velocity_run_ends_stopped_not_resumed(procs, ros, tmp_path):
     # the drive's own watchdog (1097) off: this is about the node's watchdog after a reconnect
-    bench = Bench(procs, ros, tmp_path, node_args=('-p', 'drives.axis1.watchdog_ms:=0'))
+    bench = XplusBench(procs, ros, tmp_path, node_args=('-p', 'drives.axis1.watchdog_ms:=0'))
     bench.enable('axis1')
     bench.command('axis1', 'velocity_command', 3.0)
     bench.status('axis1', lambda m: m.moving, what='running')
@@ -500,7 +481,7 @@ def test_joint_command_with_arrays_that_do_not_match_the_names_is_refused(bench)
 def test_two_drives_answering_with_one_identity_are_not_driven(procs, ros, tmp_path):
     """Both unit ids reach one drive (axis2 configured with axis1's unit id): enabling one
     would enable the other, so neither is driven and the status names the parameters."""
-    class Unconnected(Bench):
+    class Unconnected(XplusBench):
         wait_connected = False
     bench = Unconnected(procs, ros, tmp_path, node_args=('-p', 'drives.axis2.unit_id:=1'))
     for d in ('axis1', 'axis2'):
@@ -575,7 +556,7 @@ def test_one_node_serves_drives_on_several_hosts(procs, ros, tmp_path):
 def test_a_velocity_write_whose_reply_is_lost_is_still_watched(procs, ros, tmp_path):
     """The velocity write reaches the drive but its reply is lost: the node must assume it ran
     (the watchdog was armed before the write) and stop it once the drive answers again."""
-    bench = Bench(procs, ros, tmp_path, node_args=(
+    bench = XplusBench(procs, ros, tmp_path, node_args=(
         '-p', 'drives.axis1.watchdog_ms:=0'))     # the node's watchdog, not the drive's
     bench.enable('axis1')
     track = Track(bench.ros, bench.true_topic('axis1'))
@@ -609,7 +590,7 @@ def test_owner_thread_priority_runs_the_bus_owner_on_sched_fifo(procs, ros, tmp_
     and the node moves a drive as before; 0 turns it off. Where the machine refuses (no
     CAP_SYS_NICE, no rtprio limit), the node says so in one line naming the parameter and the
     limits file, and no thread is."""
-    class DefaultPriority(Bench):
+    class DefaultPriority(XplusBench):
         owner_priority_args = ()                  # the shipped default
 
     bench = DefaultPriority(procs, ros, tmp_path, node_args=args)
@@ -719,7 +700,7 @@ def test_a_homing_the_drive_shows_late_is_answered_by_its_own_end(procs, ros, tm
     which would let a caller move an axis that is still homing."""
     from stepper_drivers.vendors.xplus_mt import XplusMtDrive
 
-    class Lagging(Bench):
+    class Lagging(XplusBench):
         def __init__(self, procs, ros, tmp_path):
             self.relay = LateControlword(lambda: self.port,
                                          0.6 * XplusMtDrive.HANDSHAKE_TIMEOUT_S)
