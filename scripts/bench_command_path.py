@@ -79,7 +79,7 @@ RATE_GOAL = 0.60
 CPU_GOAL = 1.3
 POLL_RATE_CPU_HZ = 50.0
 DRIVES_CPU = 8
-# The figures of the node before the bus owner (4a9d1a6, multi-threaded executor).
+# The figures measured on the node before the bus owner (4a9d1a6, multi-threaded executor).
 BEFORE = {
     'latency': {'xplus_mt': 'p99 23 ms', 'vector_step': 'p99 13-22 ms',
                 'rd4': 'p99 41-49 ms (19200)', 'xmind_k': 'p99 132-233 ms (9600)'},

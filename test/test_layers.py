@@ -274,6 +274,19 @@ def test_no_module_over_600_lines_and_no_class_over_400_unless_it_says_why():
     assert not found, '\n'.join(found)
 
 
+def test_every_class_name_is_unique_across_both_packages():
+    """One name, one thing (the README's glossary): no two classes of stepper_drivers and
+    stepper_sim share a name (there were two Job, two Segment)."""
+    where: dict[str, list[str]] = {}
+    for package_dir in (DRIVERS, SIM):
+        for path in sorted(package_dir.rglob('*.py')):
+            for node in ast.walk(ast.parse(path.read_text())):
+                if isinstance(node, ast.ClassDef):
+                    where.setdefault(node.name, []).append(module_name(path, package_dir))
+    twice = {name: places for name, places in where.items() if len(places) > 1}
+    assert not twice, twice
+
+
 def test_the_import_graph_runs_only_downwards():
     found = violations()
     assert not found, '\n'.join(found)

@@ -6,10 +6,10 @@ The drives raise "missing SYNC" (EMCY 0x5400, FAULT) when no SYNC comes for thei
 (sync_timeout_s, 0.5 s in config/vector_step.yaml); the node sends one every can.sync_period_s
 (0.1 s) from a producer with a GIL of its own (protocol/canopen_producers). Here:
   - two busy loops take both cores from before the node starts (a CI run's clean clone failed
-    at start-up) and while both drives move for SOAK_S (STEPPER_SYNC_SOAK_S, default 60 s; the
-    issue asked for minutes: `STEPPER_SYNC_SOAK_S=300 pytest test/test_vector_step_sync.py`
-    runs that): no missing-SYNC fault, every SYNC gap on the bus within 0x1006, the node's
-    own record in /diagnostics below its WARN;
+    at start-up) and while both drives move for SOAK_S (STEPPER_SYNC_SOAK_S, default 60 s; a
+    soak of minutes: `STEPPER_SYNC_SOAK_S=300 pytest test/test_vector_step_sync.py`): no
+    missing-SYNC fault, every SYNC gap on the bus within 0x1006, the node's own record in
+    /diagnostics below its WARN;
   - a SYNC held up anyway (the producer stopped for 0.3 s) is a WARN in /diagnostics and in
     the drives' status alarms, naming the gap and the 0x1006 time, and the drives do not fault;
   - a bus owner that blocks with the GIL held for 0.7 s every 2 s (test/sync_stall_site: what
