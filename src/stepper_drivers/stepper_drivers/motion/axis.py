@@ -49,6 +49,13 @@ class Axis:
         state, t = self.bus_owner.slots[self.drive_name].sample
         return float(state.position_steps), t
 
+    def sample_motion(self) -> tuple[float, float, float]:
+        """(position, velocity, when they were true) of the last poll, as `sample`; velocity 0
+        where the drive reports none (DriveState.velocity_valid)."""
+        state, t = self.bus_owner.slots[self.drive_name].sample
+        velocity = float(state.velocity_steps_s) if state.velocity_valid else 0.0
+        return float(state.position_steps), velocity, t
+
     def moving(self) -> bool:
         return bool(self.bus_owner.slots[self.drive_name].state.moving)
 
