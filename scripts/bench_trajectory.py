@@ -1316,7 +1316,7 @@ def main() -> int:
     ap.add_argument('--json', type=pathlib.Path, help='write every figure to this file')
     ap.add_argument('--from-json', type=pathlib.Path,
                     help="no run: the dense tables again from a --json file's samples (stall "
-                         'share and timing in % of travel for a file written before they were)')
+                         'share and timing in %% of travel for a file written before they were)')
     args = ap.parse_args()
     NODE_PARAMS.extend(args.node_param)
     if args.from_json:
