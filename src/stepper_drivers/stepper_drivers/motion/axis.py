@@ -46,8 +46,8 @@ class Axis:
     def sample(self) -> tuple[float, float]:
         """(position, when it was true): the last poll's position and the bus owner's state
         time (the poll's end, or the drive's own measurement time, DriveState.measured_at_s)."""
-        state, t = self.bus_owner.slots[self.drive_name].sample
-        return float(state.position_steps), t
+        position, _velocity, t = self.sample_motion()
+        return position, t
 
     def sample_motion(self) -> tuple[float, float, float]:
         """(position, velocity, when they were true) of the last poll, as `sample`; velocity 0

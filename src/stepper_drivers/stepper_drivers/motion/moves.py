@@ -50,18 +50,20 @@ def group_starter(axes: list[Axis]) -> Callable | None:
     return bus.group_start([a.drive for a in axes])
 
 
-def catch_up_speed(axis: Axis, move: AxisMove, end_t: float) -> float:
-    """For a joint's last move, where it stops, when the estimate it starts from has the drive
-    at its end already: the least cruise speed that brings it there by the segment's end
-    (`end_t`, the follower's clock) from where, how fast and when its last snapshot saw it
-    [steps/s]. The estimate (the plan's profile, closed on a snapshot only when one came since
-    the move before) could put the drive at its point while it was a few steps short, and the
-    least cruise speed from there was the RD4's minimum of 1 Hz: the joint crept its last steps
-    for a second past the trajectory's end. Only then: a floor on every last move made joints
-    arrive early, apart from the others (not together at the end), and one on the moves before
-    the last stalled them at the next point."""
-    position, velocity, at = axis.sample_motion()
+def catch_up_speed(axis: Axis, move: AxisMove, x: float, end_t: float) -> float:
+    """For a joint's last move, where it stops, when the estimate it starts from (`x`) has the
+    drive at its end already (within THERE_STEPS): the least cruise speed that brings it there
+    by the segment's end (`end_t`, the follower's clock) from where, how fast and when its last
+    snapshot saw it [steps/s]; 0 for every other move. The estimate (the plan's profile, closed
+    on a snapshot only when one came since the move before) could put the drive at its point
+    while it was a few steps short, and the least cruise speed from there was the RD4's minimum
+    of 1 Hz: the joint crept its last steps for a second past the trajectory's end. Only then: a
+    floor on every last move made joints arrive early, apart from the others (not together at
+    the end), and one on the moves before the last stalled them at the next point."""
     way = 1.0 if move.target_steps >= move.entry_steps else -1.0
+    if move.via_steps != move.target_steps or (move.via_steps - x) * way > THERE_STEPS:
+        return 0.0
+    position, velocity, at = axis.sample_motion()
     if (move.via_steps - position) * way <= 0 or end_t <= at:
         return 0.0
     found = cruise(position, velocity, move.via_steps, move.target_steps, end_t - at,
@@ -222,11 +224,7 @@ class MoveJobs:
                          move.deceleration_steps_s2) if past else \
                     (lim.max_velocity_steps_s, top, top)
             v, a, dec = found
-            if move.via_steps == move.target_steps and \
-                    (move.via_steps - x) * (1.0 if move.target_steps >= move.entry_steps
-                                            else -1.0) <= THERE_STEPS:
-                # its last move, and the estimate has the drive at its end already
-                v = max(v, catch_up_speed(axis, move, end_t))
+            v = max(v, catch_up_speed(axis, move, x, end_t))
             if move.velocity_steps_s <= lim.start_stop_steps_s < v:
                 # start-stop as planned, a little late, rather than ramps that make it later
                 v, a, dec = (move.velocity_steps_s, move.acceleration_steps_s2,

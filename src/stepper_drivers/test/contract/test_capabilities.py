@@ -16,8 +16,6 @@ from stepper_drivers.vendors.table import ROWS
 DOC = pathlib.Path(__file__).resolve().parents[4] / 'docs' / 'adding_a_vendor.md'
 TITLES = {'X-PLUS MT': 'xplus_mt', 'RD4': 'rd4', 'X-MIND K': 'xmind_k',
           'Vector Step': 'vector_step'}
-DRIVE_CLASS = {'xplus_mt': 'XplusMtDrive', 'rd4': 'Rd4Drive', 'xmind_k': 'XmindKDrive',
-               'vector_step': 'VectorStepDrive'}
 NAMES = [n for n in dir(capabilities) if isinstance(getattr(capabilities, n), type)
          and getattr(capabilities, n).__module__ == capabilities.__name__]
 
@@ -34,8 +32,8 @@ def doc_table() -> dict[str, tuple[str, set[str]]]:
 def classes(key: str) -> tuple[type, type]:
     """(drive class, bus class) of a vendor: what make_drive and make_bus return."""
     module = importlib.import_module(f'stepper_drivers.vendors.{key}')
-    bus = typing.get_type_hints(module.make_bus)['return']
-    return getattr(module, DRIVE_CLASS[key]), bus
+    return (typing.get_type_hints(module.make_drive)['return'],
+            typing.get_type_hints(module.make_bus)['return'])
 
 
 def test_the_page_lists_every_capability_once():

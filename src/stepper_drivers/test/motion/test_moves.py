@@ -36,9 +36,6 @@ class SeenAt(Axis):
     seen_steps = 0.0
     seen_age_s = 0.0
 
-    def sample(self):
-        return self.seen_steps, time.monotonic() - self.seen_age_s
-
     def sample_motion(self):
         return self.seen_steps, 0.0, time.monotonic() - self.seen_age_s
 
