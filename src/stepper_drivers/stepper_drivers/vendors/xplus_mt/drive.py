@@ -162,7 +162,8 @@ class XplusMtDrive(XplusMtUnit, Retargeting):
         # 1042..1047 contiguous: one FC16 for target, velocity and acceleration (§11: a 32-bit
         # value is committed when its second word is written; all pairs complete in one request).
         self._write(('TARGET_POSITION', target), ('PROFILE_VELOCITY', velocity),
-                    ('PROFILE_ACCELERATION', accel), ('PROFILE_DECELERATION', decel))
+                    ('PROFILE_ACCELERATION', accel))
+        self._write_once('PROFILE_DECELERATION', decel)
         yield 0.0
         yield from self._wait_settled()
         yield from self._release_halt()
@@ -174,8 +175,8 @@ class XplusMtDrive(XplusMtUnit, Retargeting):
         velocity = self._checked('TARGET_VELOCITY', velocity_steps_s, 'set_velocity: ')
         mode = self._require_enabled('set_velocity')
         pv = yield from self._ensure_mode(xm.MODE_PROFILE_VELOCITY, 'set_velocity', mode)
-        self._write(('PROFILE_ACCELERATION', accel), ('TARGET_VELOCITY', velocity),
-                    ('PROFILE_DECELERATION', decel))
+        self._write(('PROFILE_ACCELERATION', accel), ('TARGET_VELOCITY', velocity))
+        self._write_once('PROFILE_DECELERATION', decel)
         cw = self.cia.controlword
         running = cw is not None and cw & CW_BIT_NEW_SET_POINT and not cw & CW_BIT_HALT
         if not running:

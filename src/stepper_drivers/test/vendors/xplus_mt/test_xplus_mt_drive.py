@@ -412,8 +412,9 @@ def test_operations_give_the_bus_back_between_transactions(sim, axis1):
         _, per_step = run_steps(op(), bus)
         assert max(per_step) <= most, (name, per_step)
         if name == 'move_to again':
-            # same mode: state and mode in one FC03 (1001..1002), then target & profile in 2 FC16
-            assert per_step[:2] == [1, 2], per_step
+            # same mode: state and mode in one FC03 (1001..1002), then target & profile in one
+            # FC16 (the deceleration 1072 is as this connection wrote it)
+            assert per_step[:2] == [1, 1], per_step
         if name in ('move_to', 'move_to again', 'set_velocity 0'):
             wait_for(lambda: (lambda st: not st.moving and (
                 st.target_reached or st.mode == 'PROFILE VELOCITY'))(axis1.read_state()),
@@ -423,6 +424,45 @@ def test_operations_give_the_bus_back_between_transactions(sim, axis1):
     note, per_step = run_steps(axis1.fault_reset(), bus)
     assert note == '' and max(per_step) <= 2
     assert axis1.read_state().state == State.SWITCH_ON_DISABLED
+
+
+def fc16_addresses(bus, monkeypatch):
+    """The start address of every FC16 the drive sends from now on (the real write runs)."""
+    sent = []
+    write = bus.write_registers
+
+    def recorded(unit, address, words):
+        sent.append(address)
+        return write(unit, address, words)
+    monkeypatch.setattr(bus, 'write_registers', recorded)
+    return sent
+
+
+def test_deceleration_is_written_only_when_it_changes(sim, axis1, monkeypatch):
+    """A stream of set points with one profile: 1072 (not contiguous with 1042..1047) goes
+    once per value and connection; a lost reply, a raw write and a reconnect forget it."""
+    complete(axis1.enable())
+    sent = fc16_addresses(axis1.bus, monkeypatch)
+    slower = Motion(FAST.velocity_steps_s, FAST.acceleration_steps_s2, 1_000_000)
+
+    def moves(target, motion=FAST):
+        del sent[:]
+        complete(axis1.move_to(target, motion))
+        return list(sent)
+    assert moves(1_000) == [1042, 1072]
+    assert moves(2_000) == [1042]
+    assert moves(3_000, slower) == [1042, 1072]
+    assert sim.drives['axis1'].register('PROFILE_DECELERATION') == 1_000_000
+    assert moves(4_000, slower) == [1042]
+    axis1.write_register('1072', 'i32', 1_000_000)          # a raw write: anything may change
+    assert moves(5_000, slower) == [1042, 1072]
+    sim.inject_fault('axis1', 'lose_write_reply', 1072, 0)  # takes effect, the reply is lost
+    with pytest.raises(LinkError):
+        moves(6_000)
+    assert sim.drives['axis1'].register('PROFILE_DECELERATION') == FAST.deceleration_steps_s2
+    assert moves(7_000) == [1042, 1072]          # unknown after the lost reply: sent again
+    axis1.connect()
+    assert moves(8_000) == [1042, 1072]
 
 
 def test_stop_is_one_read_and_one_write(sim, axis1):
