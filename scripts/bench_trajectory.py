@@ -61,7 +61,10 @@ Per trajectory:
 - stall share per joint: the share of the middle 80 % of the move (trajectory time 0.1 .. 0.9 x
   duration) in which the joint runs below a quarter of its planned speed (the points'
   velocities, linear between them); its speed from the true positions, the difference over
-  STALL_WINDOW_S around each sample; timing error also in % of the joint's travel; finish
+  STALL_WINDOW_S around each sample; in brackets the same share counted only where the plan
+  moves the joint at least one step in STALL_WINDOW_S (slower, an axis that steps exactly as
+  planned reads 0 in most windows: a stepper cannot move less than a step, and the true
+  positions are whole steps); timing error also in % of the joint's travel; finish
   against MoveIt's built-in limit, 1.1 x duration + 0.5 s, beside its example configurations'.
   Goals (X-PLUS MT, Vector Step, RD4): stall <= 5 %, timing error <= 2 % of the travel.
 
@@ -797,16 +800,20 @@ def dense_points(kind: str, start: list[float], dt: float):
                                               dt))
 
 
-def stall_figures(samples: dict[str, list[tuple[float, float]]], points) -> dict:
-    """Per drive: stall share (the module's docstring) and timing error in % of its travel.
-    samples: drive -> [(time since the goal was sent, rad)]."""
+def stall_figures(samples: dict[str, list[tuple[float, float]]], points,
+                  step_rad: dict[str, float] | None = None) -> dict:
+    """Per drive: stall share (the module's docstring), with step_rad (drive -> rad per step)
+    also the share where the plan moves a step per STALL_WINDOW_S, and timing error in % of
+    its travel. samples: drive -> [(time since the goal was sent, rad)]."""
     out: dict[str, dict] = {'stall_share': {}, 'travel_rad': {}}
+    if step_rad:
+        out['stall_share_resolvable'] = {}
     duration = points[-1][0]
     lo, hi = (f * duration for f in STALL_MIDDLE)
     for i, d in enumerate(DRIVES):
         planned = [(p[0], abs(p[2][i])) for p in points]
         xs = samples[d]
-        below = total = 0
+        below = total = below_resolvable = resolvable = 0
         for t, _x in xs:
             if not lo <= t <= hi:
                 continue
@@ -815,10 +822,16 @@ def stall_figures(samples: dict[str, list[tuple[float, float]]], points) -> dict
             (t0, x0), (t1, x1) = before[0], after[-1]
             if t1 - t0 < STALL_WINDOW_S / 2:
                 continue
-            speed = abs(x1 - x0) / (t1 - t0)
+            speed, plan = abs(x1 - x0) / (t1 - t0), interp(planned, t)
             total += 1
-            below += speed < STALL_FRACTION * interp(planned, t)
+            below += speed < STALL_FRACTION * plan
+            if step_rad and plan * STALL_WINDOW_S >= step_rad[d]:
+                resolvable += 1
+                below_resolvable += speed < STALL_FRACTION * plan
         out['stall_share'][d] = below / total if total else float('nan')
+        if step_rad:
+            out['stall_share_resolvable'][d] = (below_resolvable / resolvable if resolvable
+                                                else float('nan'))
         out['travel_rad'][d] = abs(points[-1][1][i] - points[0][1][i])
     return out
 
@@ -925,7 +938,9 @@ def _dense_one(bus: Bus, ros: RosClient, points, sample_hz: float) -> dict:
         out['samples_lag_s'] = max(samples_lag(
             samples[d], points[-1][1][i], 1.5 / bus.convs[d].steps_per_unit, t1)
             for i, d in enumerate(DRIVES))
-    out.update(stall_figures({d: [(t - t0, x) for t, x in samples[d]] for d in DRIVES}, points))
+    out['step_rad'] = {d: 1.0 / bus.convs[d].steps_per_unit for d in DRIVES}
+    out.update(stall_figures({d: [(t - t0, x) for t, x in samples[d]] for d in DRIVES}, points,
+                             out['step_rad']))
     out.update(merge_line(bus.log_since(mark)))
     out.update(points_n=len(points), error_code=result.error_code,
                error_string=result.error_string, finish_s=t1 - t0,
@@ -969,6 +984,9 @@ def dense_row(title: str, t: dict) -> str:
                                     for d in DRIVES) + ' % of travel)'
     stall = ' / '.join(f'{100 * t["stall_share"][d]:.0f} %' for d in DRIVES) \
         if 'stall_share' in t else '-'
+    if 'stall_share_resolvable' in t:
+        stall += ' (' + ' / '.join(f'{100 * t["stall_share_resolvable"][d]:.0f} %'
+                                   for d in DRIVES) + ')'
     builtin = builtin_limit_s(t['duration_s'])
     verdict += f' {t["limit_s"]:.1f}; {"within" if finish <= builtin else "**over**"}'
     verdict += f' {builtin:.1f}'
@@ -983,8 +1001,8 @@ def dense_row(title: str, t: dict) -> str:
 
 
 DENSE_HEADER = ('| bus | trajectory | result | finish (MoveIt limit x 1.2; x 1.1) | stall joint1 '
-                '/ joint2 | path error max / RMS (% of length) | timing error max joint1 / '
-                "joint2 (mrad) | node's segments |\n"
+                '/ joint2 (where the plan moves a step per window) | path error max / RMS (% '
+                "of length) | timing error max joint1 / joint2 (mrad) | node's segments |\n"
                 '|---|---|---|---|---|---|---|---|')
 
 
@@ -1283,7 +1301,7 @@ def from_json(path: pathlib.Path) -> int:
         for t in r.get('trajectories', []):
             if r.get('part') == 'dense' and 'samples' in t and 'start_rad' in t:
                 points = dense_points(t['kind'], t['start_rad'], t['dt_s'])
-                t.update(stall_figures(t['samples'], points))
+                t.update(stall_figures(t['samples'], points, t.get('step_rad')))
     summary(runs)
     return 0
 
