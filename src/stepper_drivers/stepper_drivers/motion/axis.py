@@ -26,6 +26,9 @@ class Axis:
     limits: JointLimits
     lead_s: float = 0.0     # learned: a move's own transactions before the drive runs
     move_time_s: float = 0.0   # the drive's own estimate of lead_s (Drive.move_time_s)
+    # learned: the time a continuous move's steps take on the bus, all of them (a set-point
+    # handshake after the motion frame too), not the waits between them
+    busy_s: float = 0.0
 
     @property
     def continuous(self) -> bool:
@@ -63,6 +66,11 @@ class Axis:
         """What a move costs on the bus before the drive runs: as measured once one was,
         the drive's estimate before."""
         return self.lead_s if self.lead_s > 0 else self.move_time_s
+
+    def move_busy_s(self) -> float:
+        """What a continuous move takes of the bus: its steps' time as measured, its cost
+        (move_cost_s) before."""
+        return self.busy_s if self.busy_s > 0 else self.move_cost_s()
 
     def velocity_steps_s(self) -> float | None:
         """The last poll's velocity; None where the drive cannot report one."""

@@ -490,16 +490,20 @@ class Follower:
 
     def min_segment_s(self, joints) -> float:
         """The least duration of a segment: what the busiest bus needs to send one move to
-        each of its axes (a move's measured time, or the drive's estimate before the first),
-        times SEGMENT_MARGIN (CONTINUOUS_SEGMENT_MARGIN where every axis of the bus follows
-        velocity-continuously). Streamed (interpolated) axes take no moves."""
+        each of its axes, times SEGMENT_MARGIN (CONTINUOUS_SEGMENT_MARGIN where every axis of
+        the bus follows velocity-continuously). A move's need is its measured lead (what it
+        takes before the drive runs), or the drive's estimate before the first; for a
+        velocity-continuous axis, no less than the time its steps take on the bus in all
+        (Axis.move_busy_s: a set-point handshake after the motion frame too). Streamed
+        (interpolated) axes take no moves."""
         per_bus: dict[int, float] = {}
         stepwise: set[int] = set()
         for joint in joints:
             axis = self.axes[joint]
             if not axis.interpolated:
-                per_bus[id(axis.bus_owner)] = per_bus.get(id(axis.bus_owner),
-                                                          0.0) + axis.move_cost_s()
+                need = max(axis.move_cost_s(), axis.move_busy_s()) if axis.continuous \
+                    else axis.move_cost_s()
+                per_bus[id(axis.bus_owner)] = per_bus.get(id(axis.bus_owner), 0.0) + need
                 if not axis.continuous:
                     stepwise.add(id(axis.bus_owner))
         return max((cost * (SEGMENT_MARGIN if bus in stepwise else CONTINUOUS_SEGMENT_MARGIN)

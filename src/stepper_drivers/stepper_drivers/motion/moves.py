@@ -16,7 +16,7 @@ import math
 from typing import Callable
 
 from ..contract.capabilities import GroupStarting
-from ..contract.drive import DriveError, Motion, is_operation
+from ..contract.drive import DriveError, Motion, Operation, is_operation
 from ..owner.commands import Command
 from .axis import Axis, FollowerView
 from .continuous import cruise
@@ -30,6 +30,30 @@ LEAD_MAX_S = 0.5              # a lead measured longer than this (a busy line) c
 # A continuous move's job is submitted this many times its bus's moves of one segment (what
 # they cost) before the move's planned instant, so it is in the owner's queue by then.
 CONTINUOUS_SUBMIT_AHEAD = 1.5
+
+
+def timed(steps: Operation, clock: Callable[[], float], spent: list[float]) -> Operation:
+    """`steps` as the bus owner runs it, adding to spent[0] the time its steps take (the
+    transactions in them), not the waits they yield; closed with it (a stop cuts it short)."""
+    try:
+        while True:
+            began = clock()
+            try:
+                delay = next(steps)
+            except StopIteration as stop:
+                spent[0] += clock() - began
+                return stop.value
+            spent[0] += clock() - began
+            yield delay
+    finally:
+        steps.close()
+
+
+def learned(old: float, measured: float) -> float:
+    """A learned time after one more measurement: the first as it is, then smoothed
+    (LEAD_SMOOTHING), at most LEAD_MAX_S."""
+    measured = min(measured, LEAD_MAX_S)
+    return measured if old <= 0 else old + LEAD_SMOOTHING * (measured - old)
 
 
 def retimed_move(axis: Axis, move: AxisMove, from_steps: float, left_s: float
@@ -230,13 +254,17 @@ class MoveJobs:
                 v, a, dec = (move.velocity_steps_s, move.acceleration_steps_s2,
                              move.deceleration_steps_s2)
             # (start-stop: the drive ignores its ramp registers)
+            busy = [0.0]
+            began = clock()
             result = axis.drive.move_to(int(round(move.target_steps)), Motion(v, a, dec))
+            busy[0] += clock() - began
             if is_operation(result):
-                result = yield from result
+                result = yield from timed(result, clock, busy)
             self._went[axis.joint] = (runs_t, dataclasses.replace(
                 move, velocity_steps_s=v, acceleration_steps_s2=a, deceleration_steps_s2=dec,
                 entry_steps=x, entry_velocity_steps_s=u))
             self._moved(axis, t0)
+            axis.busy_s = learned(axis.busy_s, busy[0])
             return result
         return job
 

@@ -42,6 +42,10 @@ MBAP = struct.Struct('>HHHB')     # transaction id, protocol id (0), length, uni
 MAX_ADU_BYTES = 260               # §3.1.3: 7 bytes of MBAP + a PDU of at most 253 bytes
 
 
+# The weight of the newest round trip in ModbusTcpBus.transaction_s.
+TRANSACTION_SMOOTHING = 0.1
+
+
 class _Closed(Exception):
     """The peer closed the connection."""
 
@@ -61,6 +65,8 @@ class ModbusTcpBus(ModbusBus, NonblockingPolls):
         self.exceptions = 0
         self.timeouts = 0
         self.stale_replies = 0
+        # a transaction's round trip, averaged (TRANSACTION_SMOOTHING) over the answered ones
+        self.transaction_s = 0.0
         self._lock = threading.Lock()
         self._sock: socket.socket | None = None
         self._rx = bytearray()
@@ -119,8 +125,12 @@ class ModbusTcpBus(ModbusBus, NonblockingPolls):
                 self._finish_pending(sock)
             reply = b''
             try:
+                began = time.monotonic()
                 self._send(sock, request)
                 reply = self._reply(sock, request)
+                took = time.monotonic() - began
+                self.transaction_s = took if not self.transaction_s else \
+                    self.transaction_s + TRANSACTION_SMOOTHING * (took - self.transaction_s)
                 return parse_reply_pdu(reply, request)
             except ModbusExceptionError as exc:
                 self.errors += 1

@@ -119,7 +119,7 @@ class TrajectoryInterface:
                         move_time_s=h.drive.move_time_s())
             old = self.follower.axes.get(joint)
             if old is not None and old.drive is h.drive:
-                axis.lead_s = old.lead_s            # what its moves took so far
+                axis.lead_s, axis.busy_s = old.lead_s, old.busy_s  # what its moves took so far
             axes[joint] = axis
         return axes
 

@@ -24,6 +24,10 @@ from . import regmap as xm
 from .unit import XplusMtUnit
 
 _HALT = Mode()                     # a mode whose stop is Halt (bit 8): every X-PLUS MT mode
+# A move_to on the connection (move_time_s), in round trips: the state read, the target, the
+# set-point handshake's bit 4 up, acknowledge read and bit 4 down, and about one more for the
+# work of its steps between them (against the simulator a move's steps take 6-7 round trips).
+MOVE_TRANSACTIONS = 6
 
 
 class XplusMtDrive(XplusMtUnit, Retargeting):
@@ -42,6 +46,11 @@ class XplusMtDrive(XplusMtUnit, Retargeting):
     # The start edges (homing, PV) write 0x000F first in every case: it also clears bits 5/6 of
     # a profile position handshake before them.
     START_EDGE_LOW_ALWAYS = True
+
+    def move_time_s(self) -> float:
+        """A move_to's time on the connection: MOVE_TRANSACTIONS of its measured round trip
+        (the 12 ms wait in the set-point handshake is not the connection's)."""
+        return MOVE_TRANSACTIONS * self.mb.transaction_s
 
     # ------------------------------------------------------------------ power stage
     # enable() and disable() are Cia402Drive's; the X-PLUS MT's parts of them:
