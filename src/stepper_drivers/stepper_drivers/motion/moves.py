@@ -32,18 +32,18 @@ LEAD_MAX_S = 0.5              # a lead measured longer than this (a busy line) c
 CONTINUOUS_SUBMIT_AHEAD = 1.5
 
 
-def timed(steps: Operation, clock: Callable[[], float], spent: list[float]) -> Operation:
-    """`steps` as the bus owner runs it, adding to spent[0] the time its steps take (the
-    transactions in them), not the waits they yield; closed with it (a stop cuts it short)."""
+def timed(steps: Operation, clock: Callable[[], float]) -> Operation[tuple[object, float]]:
+    """`steps` as the bus owner runs it; (its value, the time its steps took: the transactions
+    in them, not the waits they yield). Closed with it (a stop cuts it short)."""
+    spent = 0.0
     try:
         while True:
             began = clock()
             try:
                 delay = next(steps)
             except StopIteration as stop:
-                spent[0] += clock() - began
-                return stop.value
-            spent[0] += clock() - began
+                return stop.value, spent + clock() - began
+            spent += clock() - began
             yield delay
     finally:
         steps.close()
@@ -254,17 +254,17 @@ class MoveJobs:
                 v, a, dec = (move.velocity_steps_s, move.acceleration_steps_s2,
                              move.deceleration_steps_s2)
             # (start-stop: the drive ignores its ramp registers)
-            busy = [0.0]
             began = clock()
             result = axis.drive.move_to(int(round(move.target_steps)), Motion(v, a, dec))
-            busy[0] += clock() - began
+            busy = clock() - began
             if is_operation(result):
-                result = yield from timed(result, clock, busy)
+                result, spent = yield from timed(result, clock)
+                busy += spent
             self._went[axis.joint] = (runs_t, dataclasses.replace(
                 move, velocity_steps_s=v, acceleration_steps_s2=a, deceleration_steps_s2=dec,
                 entry_steps=x, entry_velocity_steps_s=u))
             self._moved(axis, t0)
-            axis.busy_s = learned(axis.busy_s, busy[0])
+            axis.busy_s = learned(axis.busy_s, busy)
             return result
         return job
 

@@ -7,6 +7,7 @@ import dataclasses
 import time
 
 import pytest
+from rigs_motion import quintic_line
 from stepper_drivers.contract.capabilities import Retargeting
 from stepper_drivers.motion.follow import (
     CONTINUOUS_SEGMENT_MARGIN,
@@ -19,7 +20,7 @@ from stepper_drivers.motion.follow import (
     Follower,
     GoalError,
 )
-from stepper_drivers.motion.trajectory import JointLimits, TrajectoryError, build
+from stepper_drivers.motion.trajectory import JointLimits, TrajectoryError, build, sample
 from stepper_drivers.owner import COMMAND, BusOwner
 from stepper_drivers.owner.commands import Command
 from stepper_drivers.vendors.xplus_mt import VENDOR
@@ -247,23 +248,6 @@ def test_a_continuous_axis_counts_its_moves_whole_time_on_the_bus():
     assert Follower(stepwise).min_segment_s(JOINTS) == pytest.approx(0.020 * SEGMENT_MARGIN)
 
 
-def quintic_line(travel_steps, duration_s, dt_s):
-    """MoveIt's kind of plan: points every dt_s of a quintic from 0, the t=0 point included,
-    with velocities and accelerations: (times, positions, velocities, accelerations)."""
-    n = int(round(duration_s / dt_s))
-    times, pos, vel, acc = [], [], [], []
-    for k in range(n + 1):
-        s = k / n
-        f = 10 * s**3 - 15 * s**4 + 6 * s**5
-        df = (30 * s**2 - 60 * s**3 + 30 * s**4) / duration_s
-        ddf = (60 * s - 180 * s**2 + 120 * s**3) / duration_s**2
-        times.append(k * dt_s)
-        pos.append([f * d for d in travel_steps])
-        vel.append([df * d for d in travel_steps])
-        acc.append([ddf * d for d in travel_steps])
-    return times, pos, vel, acc
-
-
 def test_a_dense_plan_is_merged_into_what_the_polls_leave_of_the_connection(strict_rig):
     """Points every 50 ms, on a connection where the polls take about 70 % (three FC03 a drive
     at 50 Hz, 2 ms replies) and a move five transactions or more, most of them after its
@@ -274,30 +258,18 @@ def test_a_dense_plan_is_merged_into_what_the_polls_leave_of_the_connection(stri
     travel) late. Bound: the 2 % of the travel the trajectory benchmark's goal allows."""
     sim, bus_owner, follower = strict_rig
     travel = [4000.0, 2000.0]
-    times, pos, vel, acc = quintic_line(travel, 3.0, 0.05)
-    run = follower.follow(build(JOINTS, times, pos, known=JOINTS, velocities_steps_s=vel,
-                                accelerations_steps_s2=acc))
+    traj = quintic_line(JOINTS, travel, 3.0, 0.05)
+    run = follower.follow(traj)
     worst = {j: 0.0 for j in JOINTS}
     while not run.done.done() and time.monotonic() < run.start_t + 5.0:
-        t = time.monotonic() - run.start_t
-        for i, joint in enumerate(JOINTS):
-            planned = [(tk, p[i]) for tk, p in zip(times, pos)]
-            worst[joint] = max(worst[joint], abs(true_steps(sim, joint) - at(planned, t)))
+        planned = sample(traj, {j: 0.0 for j in JOINTS}, time.monotonic() - run.start_t)
+        for joint in JOINTS:
+            worst[joint] = max(worst[joint], abs(true_steps(sim, joint) - planned[joint]))
         time.sleep(0.005)
     outcome = run.done.result(1.0)
     assert outcome.status == 'succeeded', outcome
     for i, joint in enumerate(JOINTS):
         assert worst[joint] <= 0.02 * travel[i], (joint, worst)
-
-
-def at(points, t):
-    """(t, x) points, linear between them, held at the ends."""
-    if t <= points[0][0]:
-        return points[0][1]
-    for (t0, x0), (t1, x1) in zip(points, points[1:]):
-        if t <= t1:
-            return x0 + (x1 - x0) * (t - t0) / (t1 - t0)
-    return points[-1][1]
 
 
 def test_a_path_tolerance_violated_stops_the_axes_and_names_the_joint(rig):

@@ -3,6 +3,7 @@
 import math
 
 import pytest
+from rigs_motion import quintic_line
 from stepper_drivers.motion.move_profile import motion_state
 from stepper_drivers.motion.trajectory import (
     EDGE_MARGIN,
@@ -212,21 +213,8 @@ RD4 = JointLimits(min_steps=-1e6, max_steps=1e6, max_velocity_steps_s=1600.0,
                   unit='rad', min_velocity_steps_s=1.0)
 
 
-def quintic_line(travel_steps, duration_s, dt_s):
-    """MoveIt-like: positions, velocities and accelerations every dt_s, the start at t=0."""
-    n = int(round(duration_s / dt_s))
-    times, pos, vel, acc = [], [], [], []
-    for k in range(n + 1):
-        s = k / n
-        times.append(k * dt_s)
-        pos.append([travel_steps * (10 * s ** 3 - 15 * s ** 4 + 6 * s ** 5)])
-        vel.append([travel_steps * (30 * s ** 2 - 60 * s ** 3 + 30 * s ** 4) / duration_s])
-        acc.append([travel_steps * (60 * s - 180 * s ** 2 + 120 * s ** 3) / duration_s ** 2])
-    return build(['a'], times, pos, ['a'], vel, acc)
-
-
 def test_a_continuous_joint_passes_its_points_on_time_and_at_speed():
-    traj = quintic_line(326.0, 3.0, 0.1)                # 2 rad of an RD4 joint in 3 s
+    traj = quintic_line(['a'], [326.0], 3.0, 0.1)                # 2 rad of an RD4 joint in 3 s
     segs = plan(traj, {'a': 0.0}, {'a': RD4}, min_segment_s=0.3, continuous={'a'})
     assert all(s.end_s - s.start_s >= 0.3 - 1e-9 for s in segs)
     for n, seg in enumerate(segs):
@@ -255,7 +243,7 @@ def test_a_continuous_joint_passes_its_points_on_time_and_at_speed():
 def test_rest_to_rest_segments_stop_at_every_point():
     """The same trajectory planned for a drive that takes no target on the way (X-MIND K):
     standing at the end of every segment."""
-    traj = quintic_line(326.0, 3.0, 0.1)
+    traj = quintic_line(['a'], [326.0], 3.0, 0.1)
     segs = plan(traj, {'a': 0.0}, {'a': RD4}, min_segment_s=0.3)
     for seg in segs[:-1]:
         assert planned_at(segs, {'a': 0.0}, seg.end_s - 1e-6)[1]['a'] == pytest.approx(0, abs=1)
@@ -292,7 +280,7 @@ def test_the_profile_model_is_the_simulated_drives():
 
 
 def test_a_path_bound_the_merged_continuous_plan_breaks_is_refused_naming_what_to_change():
-    traj = quintic_line(326.0, 3.0, 0.05)
+    traj = quintic_line(['a'], [326.0], 3.0, 0.05)
     lims = {'a': RD4}
     segs = plan(traj, {'a': 0.0}, lims, min_segment_s=0.3, continuous={'a'},
                 path_tolerance_steps={'a': 0.05 * RD4.steps_per_unit})
