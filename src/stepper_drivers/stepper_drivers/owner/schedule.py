@@ -1,8 +1,9 @@
 """What the bus owner does next: the order rules, as pure functions of the slots and the time.
 
 `decide` is called once per pass of the owner (before every transaction: keep it one loop over
-the slots, no lists but the due polls). It reads the slots and what the owner passes in, and
-changes nothing; the owner carries the decision out (owner.py). The rules, highest first:
+the slots, no lists but the due polls and the drives that running jobs also write). It reads the
+slots and what the owner passes in, and changes nothing; the owner carries the decision out
+(owner.py). The rules, highest first:
 
  1. QUIET_CYCLE   the pass after a quiet cycle, while no request came, the polls are due and
                   the owner's own next event is not: straight to the next quiet cycle
@@ -34,8 +35,9 @@ So while the polls fit the period, no drive's poll gap exceeds its period, the l
 step of a job on the bus and one transaction, whatever runs beside it.
 
 A poll is due when the drive is connected, no poll of it is under way, no job of it runs (but
-one that asked to be polled between its steps: a stream of set points), and its grid time came
-or poll_soon() asked for it.
+one that asked to be polled between its steps: a stream of set points), no job of another drive
+that also writes it runs (a group start: its poll would read what the job is changing, and take
+a transaction the start is waiting for), and its grid time came or poll_soon() asked for it.
 """
 
 from __future__ import annotations
@@ -96,9 +98,16 @@ class Decision(NamedTuple):
     dues: list[Slot] | None = None       # POLLS, POLLS_BEFORE_*: the drives due
 
 
-def poll_due(slot: Slot, now: float) -> bool:
-    return (slot.active is None or slot.active.polled) and slot.poll_operation is None \
-        and (now >= slot.next_poll_t or slot.poll_requested)
+def written_by_jobs(slots: Sequence[Slot]) -> frozenset[str]:
+    """The drives that a running job of another drive also writes (Command.also)."""
+    return frozenset(name for slot in slots if slot.active is not None
+                     for name in slot.active.also)
+
+
+def poll_due(slot: Slot, now: float, written: frozenset[str] = frozenset()) -> bool:
+    """`written`: the drives that another drive's running job also writes (Command.also)."""
+    return (slot.active.polled if slot.active is not None else slot.name not in written) \
+        and slot.poll_operation is None and (now >= slot.next_poll_t or slot.poll_requested)
 
 
 class Seen(NamedTuple):
@@ -121,6 +130,7 @@ def look(slots: Sequence[Slot], now: float) -> Seen:
     waiter_due = queued = connected = moving = False
     check = due = step = poll_step = reconnect = None
     dues: list[Slot] = []
+    written = written_by_jobs(slots)
     for slot in slots:
         if slot.poll_waiters and not waiter_due:
             waiter_due = any(w[0] <= now for w in slot.poll_waiters)
@@ -130,7 +140,7 @@ def look(slots: Sequence[Slot], now: float) -> Seen:
                     slot.velocity_deadline is not None and now >= slot.velocity_deadline
                     and now >= slot.watchdog_retry_t)):
                 check = slot
-            if poll_due(slot, now):
+            if poll_due(slot, now, written):
                 dues.append(slot)
                 if due is None or slot.next_poll_t < due.next_poll_t:
                     due = slot
@@ -238,10 +248,12 @@ def next_wake(slots: Sequence[Slot], now: float, period_s: float, next_timer_t: 
     t = min(now + MAX_SLEEP_S, next_event_t(slots, next_timer_t))
     grace = max(GROUP_GRACE_S, 2.0 * period_s)
     connected = False
+    written = written_by_jobs(slots)
     for s in slots:
         if s.connected:
             connected = True
-            if (s.active is None or s.active.polled) and s.poll_operation is None:
+            if (s.active.polled if s.active is not None else s.name not in written) \
+                    and s.poll_operation is None:
                 if s.poll_requested:
                     return now
                 poll_t = s.next_poll_t + grace if s.group_polled and not s.owner_polls \

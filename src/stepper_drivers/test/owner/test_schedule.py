@@ -24,8 +24,9 @@ PERIOD_S = 0.1
 NOW = 10.0
 
 
-def job(polled=False, enqueued_t=0.0, motion=True):
-    return types.SimpleNamespace(polled=polled, enqueued_t=enqueued_t, motion=motion)
+def job(polled=False, enqueued_t=0.0, motion=True, also=()):
+    return types.SimpleNamespace(polled=polled, enqueued_t=enqueued_t, motion=motion,
+                                 also=also)
 
 
 def slot(name, **fields):
@@ -41,9 +42,10 @@ def slot(name, **fields):
     return s
 
 
-def running(steps_due=True, polled=False, motion=True, **fields):
-    """A drive whose step-wise job runs; its next step is due (or not)."""
-    return dict(active=job(polled, motion=motion), active_operation=iter(()),
+def running(steps_due=True, polled=False, motion=True, also=(), **fields):
+    """A drive whose step-wise job runs; its next step is due (or not); `also`: the other
+    drives it writes (a group start)."""
+    return dict(active=job(polled, motion=motion, also=also), active_operation=iter(()),
                 wake_t=NOW - 0.001 if steps_due else NOW + 1.0, **fields)
 
 
@@ -157,6 +159,10 @@ TABLE = [
      Rule.STEP, 'a'),
     ("a polled job's drive is", [slot('a', **DUE, **running(polled=True))], {},
      Rule.POLLS_BEFORE_STEP, 'a'),
+    ('nor a drive that a running job of another drive also writes (a group start)',
+     [slot('a', **DUE), slot('b', **running(also=('a',)))], {}, Rule.STEP, 'b'),
+    ('that drive once no job writes it', [slot('a', **DUE), slot('b', **running(also=('c',)))],
+     {}, Rule.POLLS_BEFORE_STEP, 'a'),
     # 8 a waiting job: the drive whose turn it is, unless a job went and polls are due
     ('a queued job', [slot('a'), slot('b', **QUEUED)], {}, Rule.START_JOB, 'b'),
     ('turns: the drive that went longest ago',
@@ -242,6 +248,17 @@ def test_decide_changes_nothing():
 def test_next_wake(fields, wake):
     assert schedule.next_wake([slot('a', **fields)], NOW, PERIOD_S, math.inf, NOW) \
         == pytest.approx(wake)
+
+
+def test_the_owner_does_not_wake_for_a_drive_that_a_running_job_also_writes():
+    """Its poll is not due while the job runs (no busy loop on its overdue grid time)."""
+    written = slot('a', **DUE)
+    writer = slot('b', **dict(running(also=('a',)), wake_t=NOW + 0.03))
+    assert schedule.next_wake([written, writer], NOW, PERIOD_S, math.inf, NOW) \
+        == pytest.approx(NOW + 0.03)                  # b's next step, not a's overdue poll
+    writer.active = None
+    assert schedule.next_wake([written, writer], NOW, PERIOD_S, math.inf, NOW) \
+        == pytest.approx(written.next_poll_t)
 
 
 def test_next_wake_of_a_timer_and_of_a_disconnected_bus():
