@@ -844,9 +844,14 @@ def merge_line(lines: list[str]) -> dict:
                                         or 'ERROR' in ln][:5]}
     for ln in lines:
         m = re.search(r'(\d+) points followed as (\d+) segments of at least ([0-9.e+-]+) s', ln)
+        chain = re.search(r'(\d+) points followed as one chain of (\d+) runs', ln)
         if m:
             out.update(merge=ln.strip(), points=int(m.group(1)), segments=int(m.group(2)),
                        min_segment_s=float(m.group(3)))
+        elif chain:
+            out.update(merge=ln.strip(), points=int(chain.group(1)), chain_runs=int(
+                chain.group(2)))
+        if m or chain:
             far = re.search(r'within (.*)$', ln)
             out['merge_far'] = far.group(1).strip() if far else ''
     return out
@@ -990,9 +995,11 @@ def dense_row(title: str, t: dict) -> str:
     builtin = builtin_limit_s(t['duration_s'])
     verdict += f' {t["limit_s"]:.1f}; {"within" if finish <= builtin else "**over**"}'
     verdict += f' {builtin:.1f}'
-    segs = ('no merge' if t.get('segments') is None else
-            f'{t["points"]} points as {t["segments"]} segments (>= {t["min_segment_s"]:.3g} s); '
-            f'plan within {t.get("merge_far", "?")} of the points')
+    segs = ('no merge' if t.get('segments') is None and t.get('chain_runs') is None else
+            f'{t["points"]} points as one chain of {t["chain_runs"]} runs per joint; '
+            f'plan within {t.get("merge_far", "?")} of the points' if t.get('segments') is None
+            else f'{t["points"]} points as {t["segments"]} segments (>= '
+            f'{t["min_segment_s"]:.3g} s); plan within {t.get("merge_far", "?")} of the points')
     return (f'| {title} | {what} ({t["points_n"]} points) | {result} | {finish:.2f} s ({verdict}'
             f') | {stall} | {1000 * t["path_max_rad"]:.1f} / '
             f'{1000 * t["path_rms_rad"]:.1f} mrad ({100 * t["path_max_frac"]:.2f} / '

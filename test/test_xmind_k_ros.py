@@ -286,12 +286,13 @@ def test_line_noise_during_reconnects_is_a_link_error_not_another_device(bench):
     assert '02?S,RS,D2' in log and 'not driven' not in log, log[-3000:]
 
 
-def test_a_trajectory_with_broadcast_start_starts_its_joints_by_one_broadcast_per_segment(
+def test_a_trajectory_with_broadcast_start_starts_its_joints_by_one_broadcast(
         procs, ros, tmp_path):
     """broadcast_start true (the line holds these three drives only): once the node's line probe
-    found no other address answering, each segment of a follow_joint_trajectory goal of the
-    three joints starts them by one broadcast 99PS (the simulator logs each broadcast string it
-    heard), and they end where the goal says."""
+    found no other address answering, a follow_joint_trajectory goal of the three joints runs
+    as one chain per drive (two runs each, through both points), stored in every drive and
+    started by one broadcast 99PS (the simulator logs each broadcast string it heard), and they
+    end where the goal says."""
     from builtin_interfaces.msg import Duration
     from control_msgs.action import FollowJointTrajectory
     from rosharness import TrajectoryGoal
@@ -310,6 +311,7 @@ def test_a_trajectory_with_broadcast_start_starts_its_joints_by_one_broadcast_pe
     c = TrajectoryGoal(b, goal)
     result = c.result(10.0)
     assert result.error_code == 0, result.error_string
-    assert b.sim.output().count('broadcast 99PS,228') == 2, b.sim.output()[-2000:]
+    assert b.sim.output().count('broadcast 99PS,228') == 1, b.sim.output()[-2000:]
+    assert 'points followed as one chain of 2 runs per joint' in b.node.output()
     for d, want in zip(DRIVES, points[-1][1]):
         assert b.fresh_true_steps(d) == pytest.approx(want * STEPS_PER_RAD, abs=1.0)

@@ -9,7 +9,7 @@ polling cheaper or a trajectory smoother on a link that allows it. The paragraph
 to implement it.
 
 Drives: CachedState, FreshPollState, SplitPoll, Retargeting, Interpolating.
-Buses:  ChangeCounting, NonblockingPolls, GroupStarting.
+Buses:  ChangeCounting, NonblockingPolls, GroupStarting, Chaining.
 """
 
 from __future__ import annotations
@@ -154,3 +154,33 @@ class GroupStarting(abc.ABC):
         bus owner, which the node queues once a drive of the bus connected; it returns a line
         for the log. None: nothing to check now (the check has run since the link was opened,
         or is under way)."""
+
+
+class Chaining(abc.ABC):
+    """Runs stored in the drives ahead and executed back to back, each at a constant step rate
+    with no ramp, without the bus between them (the X-MIND K: its RAM cells chained by their
+    next-cell field). A drive that takes no new target while it runs can then pass a
+    trajectory's points at speed.
+
+    Implement it when the drives of this bus can store several runs that follow each other
+    without a stop; the trajectory follower then follows a trajectory of this bus's joints as
+    one chain per joint where the chain keeps to the path bound (motion/chain.py)."""
+
+    chain_runs: int = 0                    # how many runs one start chains
+    chain_speed_max_steps_s: float = 0.0   # the fastest chained run (above, runs ramp and stop)
+
+    @abc.abstractmethod
+    def chains_start_together(self, drives: Sequence[Drive]) -> bool:
+        """chain_start would start the chains of `drives` in one instant now (else one drive
+        after the other, each once its own chain is stored)."""
+
+    @abc.abstractmethod
+    def chain_start(self, drives: Sequence[Drive]) -> Callable[[list], Operation[Any]]:
+        """How to store and start chains on `drives` (one or more of this bus). The caller runs
+        `starter(moves)` in ONE job of the bus owner (Command.move under one of the drives,
+        `also` the others), moves being (drive, knots), knots ((instant, position_steps), ...):
+        the drive is at each position at that instant (time.monotonic()), moving at a constant
+        rate from the one before (from where it stands now to the first), at most chain_runs
+        of them. Step-wise; it refuses as move_to does (DriveError, nothing sent) and returns
+        what GroupStarting.group_start's starter returns (`started`, `skipped`, `sent_t`). A
+        drive whose chain is not confirmed whole is not started."""

@@ -29,6 +29,9 @@ class Axis:
     # learned: the time a continuous move's steps take on the bus, all of them (a set-point
     # handshake after the motion frame too), not the waits between them
     busy_s: float = 0.0
+    # learned: from the start of a chained trajectory to the string that started its last
+    # drive (motion/chain.py; 0 until one was)
+    chain_lead_s: float = 0.0
 
     @property
     def continuous(self) -> bool:

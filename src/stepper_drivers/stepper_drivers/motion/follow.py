@@ -49,10 +49,18 @@ from typing import Callable
 from ..contract.capabilities import Retargeting
 from ..owner.commands import Command
 from .axis import Axis
+from .chain import chained_plan
 from .moves import MoveJobs, retimed_move
 from .stream import Streams
 from .tolerances import Tolerances, off_goal, off_path
-from .trajectory import Segment, Trajectory, TrajectoryError, plan, planned_at
+from .trajectory import (
+    Segment,
+    Trajectory,
+    TrajectoryError,
+    check_positions,
+    plan,
+    planned_at,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -154,9 +162,12 @@ class Run:
         return planned_at(self.segments, self.start_steps, t - self.start_t)
 
     def merge_summary(self) -> str | None:
-        """One line on the points merged into longer segments; None when none were."""
+        """One line on the points merged into longer segments or a chain; None when none
+        were."""
         merged = sum(seg.merged for seg in self.segments)
-        if not merged:
+        chain = self.segments[0].moves[0].knots if len(self.segments) == 1 and \
+            self.segments[0].moves else ()
+        if not merged and not chain:
             return None
         worst: dict[str, float] = {}
         for seg in self.segments:
@@ -164,6 +175,10 @@ class Run:
                 worst[joint] = max(worst.get(joint, 0.0), dev)
         far = ', '.join(f'{j} {d / self.follower.axes[j].limits.steps_per_unit:.3g} '
                         f'{self.follower.axes[j].limits.unit}' for j, d in worst.items())
+        if chain:
+            return (f'{len(chain) + merged} points followed as one chain of {len(chain)} '
+                    'runs per joint, stored in the drives and run back to back at constant '
+                    f"rates; the plan passes the trajectory's points within {far}")
         return (f'{len(self.segments) + merged} points followed as {len(self.segments)} '
                 f'segments of at least {self.min_segment_s:.3g} s (what the bus needs to send '
                 f"the moves of its axes) or as long as the joints' accelerations need; the "
@@ -442,14 +457,18 @@ class Follower:
     def check(self, traj: Trajectory, start_t: float | None = None,
               tol: Tolerances = _NO_TOLERANCES) -> None:
         """What follow() would refuse if it were called now, without starting anything (the
-        action's goal callback): the TrajectoryError it would raise."""
+        action's goal callback): the TrajectoryError it would raise. (A chain is planned only
+        where the segments are refused: it is taken only within the bound, so it changes no
+        verdict.)"""
         with self._lock:
-            self._plan(traj, start_t, tol, self.current)
+            self._plan(traj, start_t, tol, self.current, decide=False)
 
     def _plan(self, traj: Trajectory, start_t: float | None, tol: Tolerances,
-              old: Run | None) -> tuple[float, float, dict[str, float], list[Segment], float]:
+              old: Run | None, decide: bool = True
+              ) -> tuple[float, float, dict[str, float], list[Segment], float]:
         """(start_t, take-over time, start positions, segments, least segment duration) of
-        `traj` planned now, taking over from `old` where it runs."""
+        `traj` planned now, taking over from `old` where it runs; `decide` False: the chain
+        only where the segments are refused."""
         now = self.clock()
         start_t = now if start_t is None else start_t
         if traj.points and start_t + traj.points[-1].time_s < now:
@@ -473,14 +492,27 @@ class Follower:
         min_segment_s = self.min_segment_s(traj.joints)
         bound = {j: tol.path_bound_steps.get(j) or tol.path_steps.get(j, 0.0)
                  for j in traj.joints}
-        segments = plan(traj, start_steps, {j: self.axes[j].limits for j in traj.joints},
-                        from_s=max(0.0, now - start_t), min_segment_s=min_segment_s,
-                        path_tolerance_steps=bound,
-                        move_times_s=self.move_times_s(traj.joints),
-                        continuous={j for j in traj.joints if self.axes[j].continuous},
-                        start_velocity_steps_s={j: start_velocity.get(j, 0.0)
-                                                for j in traj.joints})
-        return start_t, take_over, start_steps, segments, min_segment_s
+        limits = {j: self.axes[j].limits for j in traj.joints}
+        from_s = max(0.0, now - start_t)
+        check_positions(traj.joints, [(k, p) for k, p in enumerate(traj.points)
+                                      if p.time_s > from_s], limits)
+        segments: list[Segment] | None = None
+        try:
+            segments = plan(traj, start_steps, limits, from_s=from_s,
+                            min_segment_s=min_segment_s, path_tolerance_steps=bound,
+                            move_times_s=self.move_times_s(traj.joints),
+                            continuous={j for j in traj.joints if self.axes[j].continuous},
+                            start_velocity_steps_s={j: start_velocity.get(j, 0.0)
+                                                    for j in traj.joints})
+        except TrajectoryError:
+            chained = None if running else chained_plan(
+                traj, [self.axes[j] for j in traj.joints], start_steps, from_s, bound, None)
+            if chained is None:
+                raise
+            return start_t, take_over, start_steps, chained, min_segment_s
+        chained = chained_plan(traj, [self.axes[j] for j in traj.joints], start_steps, from_s,
+                               bound, segments) if decide and not running else None
+        return start_t, take_over, start_steps, chained or segments, min_segment_s
 
     def move_times_s(self, joints) -> dict[str, tuple[object, float]]:
         """Per joint moved by moves (not streamed): its bus and what a move costs there (the

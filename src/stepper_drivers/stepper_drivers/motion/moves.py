@@ -15,7 +15,7 @@ import dataclasses
 import math
 from typing import Callable
 
-from ..contract.capabilities import GroupStarting
+from ..contract.capabilities import Chaining, GroupStarting
 from ..contract.drive import DriveError, Motion, Operation, is_operation
 from ..owner.commands import Command
 from .axis import Axis, FollowerView
@@ -27,6 +27,7 @@ LEAD_SMOOTHING = 0.5          # weight of the newest measured lead of a move
 # against its last snapshot (catch_up_speed).
 THERE_STEPS = 2.0
 LEAD_MAX_S = 0.5              # a lead measured longer than this (a busy line) counts as this
+CHAIN_LEAD_MAX_S = 2.0        # the same for a chain's (a WN per run per drive)
 # A continuous move's job is submitted this many times its bus's moves of one segment (what
 # they cost) before the move's planned instant, so it is in the owner's queue by then.
 CONTINUOUS_SUBMIT_AHEAD = 1.5
@@ -49,10 +50,10 @@ def timed(steps: Operation, clock: Callable[[], float]) -> Operation[tuple[objec
         steps.close()
 
 
-def learned(old: float, measured: float) -> float:
+def learned(old: float, measured: float, most_s: float = LEAD_MAX_S) -> float:
     """A learned time after one more measurement: the first as it is, then smoothed
-    (LEAD_SMOOTHING), at most LEAD_MAX_S."""
-    measured = min(measured, LEAD_MAX_S)
+    (LEAD_SMOOTHING), at most `most_s`."""
+    measured = min(measured, most_s)
     return measured if old <= 0 else old + LEAD_SMOOTHING * (measured - old)
 
 
@@ -72,6 +73,15 @@ def group_starter(axes: list[Axis]) -> Callable | None:
     if not isinstance(bus, GroupStarting):
         return None
     return bus.group_start([a.drive for a in axes])
+
+
+def chain_starter(axes: list[Axis]) -> Callable | None:
+    """How the bus of `axes` (one bus) stores and starts their chains (capabilities.Chaining),
+    or None where it has none."""
+    bus = getattr(axes[0].drive, 'bus', None)
+    if not isinstance(bus, Chaining) or not bus.chain_runs:
+        return None
+    return bus.chain_start([a.drive for a in axes])
 
 
 def catch_up_speed(axis: Axis, move: AxisMove, x: float, end_t: float) -> float:
@@ -128,7 +138,9 @@ class MoveJobs:
         out: list[list] = []
         for unit in units:
             axes = [self.follower.axes[m.joint] for m in unit]
-            if len(unit) > 1 and group_starter(axes) is None:
+            if unit[0].knots:
+                out.append(unit)                     # chains: one job per bus, always
+            elif len(unit) > 1 and group_starter(axes) is None:
                 out += [[m] for m in unit]           # no group start: one job per axis
             else:
                 out.append(unit)
@@ -141,6 +153,12 @@ class MoveJobs:
         drives; their futures."""
         jobs = []
         axes = [self.follower.axes[m.joint] for m in unit]
+        if unit[0].knots:
+            members = [(a, m) for a, m in zip(axes, unit)]
+            return [axes[0].bus_owner.submit(axes[0].drive_name, Command.move(
+                self._chain_job(chain_starter(axes), members, seg_t, end_t),
+                f'trajectory of {[a.joint for a in axes]} as chained runs',
+                also=tuple(a.drive_name for a in axes[1:])))]
         starter = group_starter(axes) if len(unit) > 1 else None
         if starter is None:
             for axis, move in zip(axes, unit):
@@ -208,6 +226,37 @@ class MoveJobs:
             if skipped:
                 names = {axis.drive_name: axis.joint for axis, _, _ in members}
                 raise DriveError('; '.join(f'{names.get(name, name)}: its move did not go '
+                                           f'out ({why})' for name, why in skipped.items()))
+            return result
+        return job
+
+    def _chain_job(self, starter: Callable, members: list, seg_t: float,
+                   end_t: float) -> Callable:
+        """One job that stores the chains of the axes of one bus and starts them
+        (capabilities.Chaining), each knot at its instant on the follower's clock (the
+        segment's end is the last knot's). A member left out fails the job, as in
+        _group_job. Each axis learns the chain's lead (Axis.chain_lead_s: from the segment's
+        start, `seg_t`, to the string that started the last drive); a move's lead is not
+        learned from it (a chain's strings, a WN per run, are not a move's)."""
+        clock = self.follower.clock
+
+        def job():
+            offset = end_t - members[0][1].knots[-1][0]
+            moves = [(axis.drive, tuple((offset + t, int(round(x))) for t, x in move.knots))
+                     for axis, move in members]
+            result = yield from starter(moves)
+            now = clock()
+            skipped = getattr(result, 'skipped', {})
+            sent = getattr(result, 'sent_t', None)
+            for axis, _ in members:
+                if axis.drive_name not in skipped:
+                    self.moved_t[axis.joint] = now
+                if sent is not None:
+                    axis.chain_lead_s = learned(axis.chain_lead_s, sent - seg_t,
+                                                CHAIN_LEAD_MAX_S)
+            if skipped:
+                names = {axis.drive_name: axis.joint for axis, _ in members}
+                raise DriveError('; '.join(f'{names.get(name, name)}: its chain did not go '
                                            f'out ({why})' for name, why in skipped.items()))
             return result
         return job

@@ -75,6 +75,24 @@ class AxisMove:
     entry_velocity_steps_s: float = 0.0
     start_stop_steps_s: float = 0.0      # its drive's (JointLimits): no ramps at or below
     deceleration_steps_s2: float = 0.0   # a continuous move's; 0: acceleration_steps_s2
+    # A chain of constant-rate runs (capabilities.Chaining; () otherwise): (trajectory time,
+    # position) where each run ends, the last (the segment's end, target_steps); the first
+    # runs from where the joint is start_delay_s into the segment
+    knots: tuple[tuple[float, float], ...] = ()
+
+    def chain_state(self, start_s: float, start_steps: float, clock_s: float
+                    ) -> tuple[float, float]:
+        """Planned (position, velocity) of a chain at trajectory time clock_s, its first run
+        from `start_steps` at trajectory time `start_s`: linear between its knots."""
+        t0, x0 = start_s, start_steps
+        for t1, x1 in self.knots:
+            if clock_s < t1:
+                if clock_s <= t0:
+                    return x0, 0.0
+                v = (x1 - x0) / (t1 - t0)
+                return x0 + v * (clock_s - t0), v
+            t0, x0 = t1, x1
+        return x0, 0.0
 
     def state(self, tau_s: float) -> tuple[float, float]:
         """Planned (position, velocity) of a continuous move tau_s after it took effect."""

@@ -236,7 +236,7 @@ def plan(traj: Trajectory, start_steps: dict[str, float], limits: dict[str, Join
     cont = [j for j in traj.joints if j in continuous]
     stepwise = {j: limits[j] for j in traj.joints if j not in cont}
     due = [(k, p) for k, p in enumerate(traj.points) if p.time_s > from_s]
-    _check_positions(traj.joints, due, limits)      # points already past: JTC drops them too
+    check_positions(traj.joints, due, limits)      # points already past: JTC drops them too
     # the last segment: at least min_segment_s, half that where every joint is continuous (a
     # move that goes out late there only shifts its speed change; a longer tail would pass far
     # from the points where the plan slows down)
@@ -290,10 +290,10 @@ def plan(traj: Trajectory, start_steps: dict[str, float], limits: dict[str, Join
         # so that the two do not import each other at module level
         segments = continuous_moves(traj, segments, start_steps, limits, cont,
                                     start_velocity_steps_s or {})
-    return _bounded(traj, segments, start_steps, from_s, limits, tol, min_segment_s)
+    return bounded(traj, segments, start_steps, from_s, limits, tol, min_segment_s)
 
 
-def _check_positions(joints: Sequence[str], due: Sequence[tuple[int, Point]],
+def check_positions(joints: Sequence[str], due: Sequence[tuple[int, Point]],
                      limits: dict[str, JointLimits]) -> None:
     """TrajectoryError at the first of the `due` points (index, point) that puts a joint
     outside its min_position..max_position."""
@@ -327,7 +327,7 @@ def _average_speeds(joints: list[str], targets: dict[str, float], previous: dict
     return out
 
 
-def _bounded(traj: Trajectory, segments: list[Segment], start_steps: dict[str, float],
+def bounded(traj: Trajectory, segments: list[Segment], start_steps: dict[str, float],
              from_s: float, limits: dict[str, JointLimits], tol: dict[str, float],
              min_segment_s: float) -> list[Segment]:
     """The segments with how far their plan passes from the trajectory's points (per joint,
@@ -366,8 +366,8 @@ def _bounded(traj: Trajectory, segments: list[Segment], start_steps: dict[str, f
 def planned_at(segments: Sequence[Segment], start_steps: dict[str, float], clock_s: float
                ) -> tuple[dict[str, float], dict[str, float]]:
     """The planned position and velocity of each joint at trajectory time clock_s: the
-    trapezoids of rest-to-rest moves, each from when its move reaches the drive, and the
-    profiles of continuous moves from when they take effect."""
+    trapezoids of rest-to-rest moves, each from when its move reaches the drive, the
+    profiles of continuous moves from when they take effect, and the runs of chains."""
     pos = dict(start_steps)
     vel = {j: 0.0 for j in start_steps}
     for seg in segments:
@@ -378,6 +378,9 @@ def planned_at(segments: Sequence[Segment], start_steps: dict[str, float], clock
                     pos[m.joint], vel[m.joint] = m.state(clock_s - te)
                 continue
             if clock_s <= seg.start_s:
+                continue
+            if m.knots:
+                pos[m.joint], vel[m.joint] = m.chain_state(te, pos[m.joint], clock_s)
                 continue
             tau = min(clock_s, seg.end_s) - seg.start_s
             profile = (pos[m.joint], m.target_steps, m.velocity_steps_s,

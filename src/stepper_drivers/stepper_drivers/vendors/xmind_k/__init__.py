@@ -28,7 +28,8 @@ entry and the drive classes both import, never the other way round), the drive c
 `link.py` (its strings, connect, the status check); the drive is
 silent while it runs a program (§3), so read_state, stop, a velocity change and homing all work
 in drive.py on the same running `DriveProgram`, its `Estimate` (`program.py`) and the epoch. The
-group start and `XmindKGroupBus` are in `group.py`, the bus scanner in `scan.py`.
+group start and `XmindKGroupBus` are in `group.py`, the chained runs and `XmindKChainBus` (the
+node's bus) in `chain.py`, the bus scanner in `scan.py`.
 """
 
 from __future__ import annotations
@@ -40,6 +41,7 @@ from ...contract.drive import Vendor
 from ...protocol.xmind_k_bus import XmindKBus
 from . import scan as xmind_k_scan
 from . import settings
+from .chain import ChainMove, XmindKChainBus, start_chained
 from .drive import XmindKDrive
 from .group import (
     GroupMove,
@@ -53,9 +55,10 @@ from .group import (
 from .program import DriveProgram, Estimate
 from .settings import HOMING_METHODS, PARAMS, _check_address, _check_drive
 
-__all__ = ['HOMING_METHODS', 'PARAMS', 'VENDOR', 'DriveProgram', 'Estimate', 'GroupMove',
-           'GroupStart', 'XmindKDrive', 'XmindKGroupBus', 'broadcast_refusal', 'line_refusal',
-           'make_bus', 'make_drive', 'probe_line', 'start_together', 'validate']
+__all__ = ['HOMING_METHODS', 'PARAMS', 'VENDOR', 'ChainMove', 'DriveProgram', 'Estimate',
+           'GroupMove', 'GroupStart', 'XmindKChainBus', 'XmindKDrive', 'XmindKGroupBus',
+           'broadcast_refusal', 'line_refusal', 'make_bus', 'make_drive', 'probe_line',
+           'start_chained', 'start_together', 'validate']
 
 
 def validate(params: Mapping[str, Any]) -> list[str]:
@@ -73,8 +76,8 @@ def validate(params: Mapping[str, Any]) -> list[str]:
 
 
 # ---------------------------------------------------------------------------------- vendor
-def make_bus(params: Mapping[str, Any]) -> XmindKGroupBus:
-    return XmindKGroupBus(VENDOR.with_defaults(params))
+def make_bus(params: Mapping[str, Any]) -> XmindKChainBus:
+    return XmindKChainBus(VENDOR.with_defaults(params))
 
 
 def make_drive(bus: XmindKBus, name: str, params: Mapping[str, Any]) -> XmindKDrive:

@@ -158,10 +158,7 @@ def start_together(moves: Any) -> drive.Operation[GroupStart]:
     moves = list(moves)
     if not moves:
         return GroupStart(False, 'no moves', (), {}, None)
-    bus = _line_of(moves)
-    skipped: dict[str, str] = {}
-    stops = {m.drive.name: m.drive.stops if m.stops is None else m.stops for m in moves}
-    moves = _leave_out_stopped(moves, stops, skipped)
+    bus, stops, skipped, moves = _begin(moves)
     targets = _refuse_as_move_to(moves)                  # 1. refusals, no wire
     yield from _await_index_ends(moves)
     moves = _leave_out_stopped(moves, stops, skipped)    # a stop during the waits
@@ -186,6 +183,15 @@ def start_together(moves: Any) -> drive.Operation[GroupStart]:
 
 
 # ---------------------------------------------------- the steps of start_together, in order
+def _begin(moves: list[Any]) -> tuple[XmindKBus, dict[str, int], dict[str, str], list[Any]]:
+    """(the line, each drive's stops when the start was decided, `skipped`, the moves of the
+    drives not stopped since) of a start's moves (GroupMove or ChainMove)."""
+    bus = _line_of(moves)
+    skipped: dict[str, str] = {}
+    stops = {m.drive.name: m.drive.stops if m.stops is None else m.stops for m in moves}
+    return bus, stops, skipped, _leave_out_stopped(moves, stops, skipped)
+
+
 def _line_of(moves: list[GroupMove]) -> XmindKBus:
     """The one line of `moves`, or DriveError: one move per drive, all drives on one line."""
     bus = moves[0].drive.bus
@@ -254,6 +260,10 @@ class _Plan:
     target: int
     motion: Motion
 
+    def confirmed(self) -> bool:
+        """The drive confirmed this run in MOVE_CELL and holds it still."""
+        return self.drive.cells.get(MOVE_CELL) == self.instr
+
     def job(self, t: float) -> DriveProgram:
         """The DriveProgram of this run started at `t` (what XmindKDrive._start_move records)."""
         estimate = Estimate.index(t, self.start, self.chunk, self.f, self.a)
@@ -281,6 +291,29 @@ def _store_runs(group: list[GroupMove], targets: Mapping[str, int],
     return stored, plans
 
 
+def _ready(d: XmindKDrive, epochs: Mapping[str, int], skipped: dict[str, str]
+           ) -> drive.Operation[bool]:
+    """FA and the power-cycle flag on the wire (as every start); then whether `d` takes part
+    still: False where a stop or a newer command reached it since the start began (`skipped`
+    says so), DriveError where it is not enabled."""
+    yield from d._read_status()
+    yield 0.0
+    if not _live(d, epochs):
+        skipped[d.name] = 'a stop or a newer command came first'
+        return False
+    d._require_enabled('move')
+    return True
+
+
+def _hold(d: XmindKDrive, possible: bool, stored: dict[str, xk.Instruction]) -> None:
+    """A drive of the start that stays where it is: the null instruction (§4.1.13) into
+    MOVE_CELL where a broadcast is possible (it would run its cell 228 too), nothing
+    otherwise."""
+    if possible:
+        d._store(MOVE_CELL, NULL_INSTRUCTION)
+        stored[d.name] = NULL_INSTRUCTION
+
+
 def _store_run(m: GroupMove, target: int, epochs: Mapping[str, int], possible: bool,
                stored: dict[str, xk.Instruction], skipped: dict[str, str]
                ) -> drive.Operation[_Plan | None]:
@@ -289,18 +322,12 @@ def _store_run(m: GroupMove, target: int, epochs: Mapping[str, int], possible: b
     possible (None). What it confirmed goes to `stored`; why it is not started to `skipped`."""
     d = m.drive
     try:
-        yield from d._read_status()
-        yield 0.0
-        if not _live(d, epochs):
-            skipped[d.name] = 'a stop or a newer command came first'
+        if not (yield from _ready(d, epochs, skipped)):
             return None
-        d._require_enabled('move')
         start = d.position_steps
         chunk = max(-xk.STEPS_MAX, min(xk.STEPS_MAX, target - start))
         if chunk == 0:
-            if possible:
-                d._store(MOVE_CELL, NULL_INSTRUCTION)
-                stored[d.name] = NULL_INSTRUCTION
+            _hold(d, possible, stored)
             return None
         instr, f, a = d.run_instruction('move', m.motion.velocity_steps_s, m.motion, chunk)
         d._store(MOVE_CELL, instr)
@@ -329,7 +356,7 @@ def _skew_s(plans: Mapping[str, _Plan]) -> float:
     return max(rd_s) - min(rd_s) if rd_s else 0.0
 
 
-def _broadcast(bus: XmindKBus, plans: Mapping[str, _Plan]) -> tuple[float, list[str]]:
+def _broadcast(bus: XmindKBus, plans: Mapping[str, Any]) -> tuple[float, list[str]]:
     """Step 3, same step as its check: the jobs, then 99PS,228; when it was sent, and who."""
     t = time.monotonic()
     for plan in plans.values():
@@ -344,18 +371,17 @@ def _broadcast(bus: XmindKBus, plans: Mapping[str, _Plan]) -> tuple[float, list[
     return sent_t, started
 
 
-def _start_each(plans: Mapping[str, _Plan], epochs: Mapping[str, int], skipped: dict[str, str]
+def _start_each(plans: Mapping[str, Any], epochs: Mapping[str, int], skipped: dict[str, str]
                 ) -> drive.Operation[tuple[float | None, list[str]]]:
-    """Step 3 without the broadcast: PS,228 to each drive whose run is confirmed, one a step,
-    as a single move starts; when the last was sent, and who."""
+    """Step 3 without the broadcast: PS,228 to each drive whose run (or chain) is confirmed,
+    one a step, as a single move starts; when the last was sent, and who."""
     sent_t = None
     started = []
     for i, (name, plan) in enumerate(plans.items()):
         d = plan.drive
         if i:
             yield 0.0
-        if not _live(d, epochs) or d.fault or not d.enabled or \
-                d.cells.get(MOVE_CELL) != plan.instr:
+        if not _live(d, epochs) or d.fault or not d.enabled or not plan.confirmed():
             skipped[name] = 'a stop or a newer command came first, or it is not enabled'
             continue
         try:
@@ -380,10 +406,10 @@ def _move_late(late: list[GroupMove]) -> drive.Operation[None]:
 
 
 class XmindKGroupBus(XmindKBus, GroupStarting):
-    """The line as the node drives it: XmindKBus (protocol/) with this module's group start
-    (GroupStarting.group_start: start_together, which decides between one broadcast and per-drive
-    starts) and the check it needs (GroupStarting.group_start_check: probe_line, once per opening
-    of the line); both only where broadcast_start is true."""
+    """The line with this module's group start (GroupStarting.group_start: start_together,
+    which decides between one broadcast and per-drive starts) and the check it needs
+    (GroupStarting.group_start_check: probe_line, once per opening of the line); both only
+    where broadcast_start is true. The node's bus adds chained runs (chain.py)."""
 
     def __init__(self, params: Mapping[str, Any]):
         super().__init__(params)
