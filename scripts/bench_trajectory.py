@@ -381,14 +381,26 @@ def first_in_band(samples, t_from: float, t_to: float, target: float, band: floa
 def enable_all(ros: RosClient, node: Proc, status: dict, node_path: str, drives, title: str
                ) -> None:
     """Wait until each drive's status says connected, enable it (its `enable` service), and
-    wait until each says enabled; the node's death ends every wait (`running`)."""
+    wait until each says enabled; the node's death ends every wait (`running`). An enable
+    whose reply was lost (the node then drops the link and connects again) is tried once more
+    after the reconnect, with a line saying so: a simulator stalled right after it started (by
+    stale Fast DDS segments in /dev/shm: docs/troubleshooting.md) is no figure of the bench."""
     def last(d):
         return status[d].last_before(time.monotonic()) or DriveStatus()
     for d in drives:
         wait_for(running(node, lambda d=d: last(d).connected), 60, f'{title} {d} connected')
-        r = ros.call(SetBool, f'{node_path}/{d}/enable', SetBool.Request(data=True), 30)
-        if not r.success:
-            raise RuntimeError(f'{d}: enable refused: {r.message}')
+        for attempt in (1, 2):
+            seen = last(d).link_reconnects
+            r = ros.call(SetBool, f'{node_path}/{d}/enable', SetBool.Request(data=True), 30)
+            if r.success:
+                break
+            if attempt == 2 or 'no reply' not in r.message:
+                raise RuntimeError(f'{d}: enable refused: {r.message}')
+            print(f'   {title} {d}: the enable lost its reply ({r.message[-90:]}); once more '
+                  'after the reconnect (stale Fast DDS segments in /dev/shm? '
+                  'docs/troubleshooting.md)', flush=True)
+            wait_for(running(node, lambda d=d, seen=seen: last(d).connected
+                             and last(d).link_reconnects > seen), 30, f'{title} {d} reconnected')
     for d in drives:
         wait_for(running(node, lambda d=d: last(d).enabled), 10, f'{title} {d} enabled')
 
