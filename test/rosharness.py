@@ -5,7 +5,9 @@ every end-to-end test uses them.
 ROS message packages are imported where used, so this module imports without them.
 """
 
+import os
 import signal
+import subprocess
 import threading
 import time
 
@@ -13,10 +15,16 @@ import time
 from stepper_drivers.cli.ros_client import RosClient  # noqa: F401
 from stepper_sim.harness import CONFIG, INSTALL, ROOT, Proc, executable, free_port, wait_for  # noqa: F401
 
+# How long the processes still running at a test's end get to end on SIGINT before SIGKILL.
+END_GRACE_S = 3.0
+
 
 class Procs(list):
-    """Processes started for a test or a module, logs in log_dir; kill_all() ends them by PID,
-    the last started first."""
+    """Processes started for a test or a module, logs in log_dir; kill_all() ends them by PID.
+    It asks first (SIGINT to every one still running, then at most END_GRACE_S for them all):
+    a ROS process that ends so removes its Fast DDS shared-memory files from /dev/shm, a killed
+    one leaves them, and thousands of them stall the start of every ROS process on the machine
+    (docs/troubleshooting.md)."""
 
     def __init__(self, log_dir):
         super().__init__()
@@ -28,8 +36,29 @@ class Procs(list):
         return p
 
     def kill_all(self) -> None:
+        # (a rig may put an object of its own here that only has kill(): rigs_vendors._Closer)
+        running = [p for p in reversed(self)
+                   if isinstance(p, Proc) and p.proc.poll() is None]
+        for p in running:
+            try:
+                os.killpg(p.proc.pid, signal.SIGINT)
+            except ProcessLookupError:
+                pass
+        deadline = time.monotonic() + END_GRACE_S
+        for p in running:
+            try:
+                p.proc.wait(timeout=max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                pass
+        for p in running:
+            # the whole group, whether its leader has ended or not: a child that outlives its
+            # leader after the SIGINT must not outlive the test
+            try:
+                os.killpg(p.proc.pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
         for p in reversed(self):
-            p.kill()
+            p.kill()                   # reaps and closes the logs
 
 
 class DriveBench:

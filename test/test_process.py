@@ -9,6 +9,7 @@ scripts/check_signal_race.py (it needs hundreds of loaded starts to show).
 
 from __future__ import annotations
 
+import os
 import signal
 import subprocess
 import sys
@@ -92,3 +93,39 @@ def test_an_exception_in_a_callback_ends_the_node_after_the_drives_stopped():
         rclpy.shutdown(context=context)
     assert code == 1 and 'drives stopped' in out and 'a bug in a callback' in out, out
     assert out.index('drives stopped') < out.index('Traceback'), out
+
+
+PROBE = textwrap.dedent("""
+    import rclpy
+    rclpy.init()
+    node = rclpy.create_node('shm_probe')
+    print('up', flush=True)
+    try:
+        rclpy.spin(node)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+""")
+
+
+def fast_dds_files() -> set[str]:
+    return {f for f in os.listdir('/dev/shm') if f.startswith('fastrtps_')}
+
+
+def test_the_harness_ends_its_processes_so_that_their_shared_memory_goes(tmp_path):
+    """Procs.kill_all (every end-to-end test's teardown) asks first: a ROS process that ends on
+    SIGINT removes its Fast DDS files from /dev/shm, where a killed one leaves them behind
+    (docs/troubleshooting.md: thousands of them stalled the simulators' start)."""
+    from rosharness import Procs
+    before = fast_dds_files()
+    procs = Procs(tmp_path)
+    probe = procs.start('probe', [sys.executable, '-c', PROBE])
+    probe.wait_line('up')
+    mine = fast_dds_files() - before
+    assert mine, 'the probe made no Fast DDS files in /dev/shm'
+    procs.kill_all()
+    assert probe.proc.returncode == 0, probe.output()
+    assert not mine & fast_dds_files()
+
