@@ -88,9 +88,8 @@ class _ChainPlan:
 def _string_s(d: XmindKDrive, frame: xk.Frame) -> float:
     """What one string to `d` and its Y take on the line (§3): its characters, the
     turnaround, the drive's answer delay RD, the answer and the margin after it."""
-    rd_s = (d.rd_ms if d.rd_ms is not None else xk.RD_DEFAULT_MS) / 1000.0
     chars = len(xk.encode_request(frame)) + Y_ANSWER_CHARS
-    return chars * d.bus.char_s + xk.turnaround_s(frame.code) + rd_s + xk.MARGIN_S
+    return chars * d.bus.char_s + xk.turnaround_s(frame.code) + d.answer_delay_s + xk.MARGIN_S
 
 
 def _until_run_s(order: list[XmindKDrive], i: int, broadcast: bool) -> float:
@@ -102,8 +101,8 @@ def _until_run_s(order: list[XmindKDrive], i: int, broadcast: bool) -> float:
     wn = sum(_string_s(o, xk.Frame(o.number, 'WN', (MOVE_CELL, TYPICAL_RUN)))
              for o in (order[i:] if broadcast else [d]))
     ps = xk.Frame(xk.BROADCAST if broadcast else d.number, 'PS', (MOVE_CELL,))
-    rd_s = (d.rd_ms if d.rd_ms is not None else xk.RD_DEFAULT_MS) / 1000.0
-    return wn + len(xk.encode_request(ps)) * d.bus.char_s + xk.turnaround_s('PS') + rd_s
+    return wn + len(xk.encode_request(ps)) * d.bus.char_s + xk.turnaround_s('PS') + \
+        d.answer_delay_s
 
 
 def _store_later_runs(m: ChainMove, epochs: Mapping[str, int], possible: bool,

@@ -85,11 +85,16 @@ class XmindKLink(drive.Drive):
 
     min_velocity_steps_s = 1.0            # Table 4: 0001..4800 Hz
 
-    def move_time_s(self) -> float:
+    @property
+    def answer_delay_s(self) -> float:
+        """The drive's answer delay RD (§4.2.2.5): as read at connect, else as configured,
+        else the factory default."""
         rd_ms = self.rd_ms if self.rd_ms is not None else int(self.params['answer_delay_ms'])
-        rd_s = (rd_ms if rd_ms >= 0 else xk.RD_DEFAULT_MS) / 1000.0
-        return (MOVE_STRINGS * (MOVE_CHARS_PER_STRING * self.bus.char_s + xk.TURNAROUND_S + rd_s)
-                + xk.TURNAROUND_WN_S)
+        return (rd_ms if rd_ms >= 0 else xk.RD_DEFAULT_MS) / 1000.0
+
+    def move_time_s(self) -> float:
+        return (MOVE_STRINGS * (MOVE_CHARS_PER_STRING * self.bus.char_s + xk.TURNAROUND_S
+                                + self.answer_delay_s) + xk.TURNAROUND_WN_S)
 
     # ---------------------------------------------------------------------------- transactions
     def _ask(self, code: str, *args, tries: int | None = None, retry_silence: bool = True,
