@@ -183,6 +183,12 @@ class DriveBench:
             raise AssertionError(f'{e}\nlast status: {last}\n'
                                  f'node log:\n{self.node.output()[-3000:]}') from None
 
+    def fresh_status(self, drive, what=''):
+        """A status of `drive` published after this call (idle, at status_rate_hz)."""
+        with self.ros.lock:
+            self.ros.latest.pop(f'{self.node_ns}/{drive}/status', None)
+        return self.status(drive, what=what)
+
     def true_topic(self, drive):
         return f'{self.sim_ns}/{drive}/true_position_steps'
 

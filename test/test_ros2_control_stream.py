@@ -49,26 +49,30 @@ VENDORS = ('xplus_mt', 'vector_step', 'rd4', 'xmind_k')
 
 
 class BusUse:
-    """What the bus carried over a window: the node's transactions (status.link_transactions);
-    on the CAN bus every frame the broker relayed, since a Vector Step set point goes out as
-    RxPDO frames, which are no transactions."""
+    """What the bus carried per second over a window: the node's transactions
+    (status.link_transactions, between the stamps of two statuses published after the window's
+    ends: a cached one may be a status period old); on the CAN bus every frame the broker
+    relayed, since a Vector Step set point goes out as RxPDO frames, which are no transactions."""
 
     def __init__(self, bench, drive):
         self.bench, self.drive = bench, drive
 
-    def count(self) -> int:
+    def sample(self) -> tuple[int, float]:
         broker = getattr(self.bench, 'broker', None)
         if broker is not None:
-            return broker.frames_in
-        return self.bench.status(self.drive, what='a status').link_transactions
+            return broker.frames_in, time.monotonic()
+        st = self.bench.fresh_status(self.drive, what='a status')
+        return st.link_transactions, st.header.stamp.sec + st.header.stamp.nanosec * 1e-9
 
-    def over(self, window_s: float, during=None) -> int:
-        first = self.count()
+    def rate(self, window_s: float, during=None) -> float:
+        first, t_first = self.sample()
         t0 = time.monotonic()
         if during is not None:
             during()
         time.sleep(max(0.0, t0 + window_s - time.monotonic()))
-        return (self.count() - first) & 0xFFFFFFFF
+        last, t_last = self.sample()
+        assert t_last > t_first, (t_first, t_last)
+        return ((last - first) & 0xFFFFFFFF) / (t_last - t_first)
 
 
 def _when(start: float, x: float, t_ramp: float) -> float:
@@ -126,10 +130,11 @@ def test_the_topic_plugins_stream_drives_the_node(vendor, procs, ros, tmp_path):
     hold = [*start, 0.0]
     stream.run('position', lambda t: hold, 0.3)
     use = BusUse(bench, 'axis1')
-    idle = use.over(1.0)
-    held = use.over(1.0, during=lambda: stream.start('position', lambda t: hold))
+    idle = use.rate(1.0)
+    held = use.rate(1.0, during=lambda: stream.start('position', lambda t: hold))
     stream.stop()
-    # the polls' own jitter aside (a fifth): 100 messages sent would be 100 transactions more
+    # the polls' own jitter aside (a fifth): 100 messages a second sent would be 100
+    # transactions a second more
     assert held <= idle * 1.2 + 10, (held, idle)
     for i, d in enumerate(drives):
         assert bench.status(d).commands_refused == refused[i]
