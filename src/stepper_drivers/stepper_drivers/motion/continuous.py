@@ -16,7 +16,8 @@ ramps: PLAN_FRACTIONS[0] of its max_acceleration, or RAMP_SHAPE times the plan's
 acceleration of the joint (the points' accelerations, or their positions' second differences)
 where that is steeper; a drive that runs start-stop at a speed (X-PLUS MT) jumps. A joint whose
 planned velocity is zero at a point, or that turns or holds there, brakes to rest on it, as the
-rest-to-rest segments do.
+rest-to-rest segments do. Where points were merged, the segments' ends are passed where the
+polyline of the segments runs nearest the merged points (`fitted_vias`), not on the points.
 
 Not here: the trajectory types, the checks, the merging of points into segments and the path
 bound (trajectory.py, which also plans the rest-to-rest joints), nor the profile arithmetic
@@ -46,6 +47,11 @@ from .segments import (
 # uses it both ways (§13 "Multi-Set-Point Mode", "Registers 1046-1047"), the RD4 then writes
 # its ramps once, and a stop of the drive brakes as fast as a rest-to-rest move's would.
 RAMP_SHAPE = 1.5
+# The fit of the positions where a joint passes the merged segments' ends (fitted_vias): sweeps
+# over the knots, until none moves by FIT_DONE_STEPS; steps of the bisection of one knot.
+FIT_SWEEPS = 20
+FIT_DONE_STEPS = 0.25
+FIT_SEARCH = 30
 
 
 def ramp_acceleration(traj: Trajectory, joint: str, lim: JointLimits,
@@ -79,7 +85,7 @@ def continuous_moves(traj: Trajectory, segments: list[Segment], start_steps: dic
         col = traj.joints.index(joint)
         lim = limits[joint]
         a = ramp_acceleration(traj, joint, lim, start_steps[joint])
-        vias = [traj.points[seg.point].positions_steps[col] for seg in segments]
+        vias = fitted_vias(traj, segments, col, start_steps[joint])
         x, u = start_steps[joint], start_velocity.get(joint, 0.0)
         # the move in effect: (when, entry position, entry velocity, target, cruise)
         effect: AxisMove | None = None          # the move in effect, since effect_s
@@ -131,6 +137,75 @@ def continuous_moves(traj: Trajectory, segments: list[Segment], start_steps: dic
             before = via
     return [dataclasses.replace(seg, moves=tuple(ms[j] for j in traj.joints if j in ms))
             for seg, ms in zip(segments, moves)]
+
+
+def fitted_vias(traj: Trajectory, segments: list[Segment], col: int, start: float
+                ) -> list[float]:
+    """Where the joint passes each segment's end: the polyline through these positions (its
+    speed steps from one segment's average to the next around each) passes the points merged
+    into the segments as near as it can (least largest distance, FIT_SWEEPS sweeps of one
+    knot at a time). Through the points themselves a merged segment's chord lies on one side
+    of a curved plan, up to an eighth of its acceleration times the segment's time squared;
+    moved off them, half that on either side. Kept on its point: the last segment's end, and
+    every end where the joint stops, turns or holds (a point where it rests is passed at rest,
+    on time) or where no point was merged into a segment beside it."""
+    points = traj.points
+    times = [segments[0].start_s] + [seg.end_s for seg in segments]
+    ys = [start] + [points[seg.point].positions_steps[col] for seg in segments]
+    # the points between two knots, (time, position), per segment
+    inside = [[(points[k].time_s, points[k].positions_steps[col])
+               for k in range(segments[n - 1].point + 1 if n else 0, seg.point)
+               if points[k].time_s > seg.start_s] for n, seg in enumerate(segments)]
+    free = []
+    for n in range(1, len(segments)):
+        before, via, after = ys[n - 1], ys[n], ys[n + 1]
+        planned = points[segments[n - 1].point].velocities_steps_s
+        way = 1.0 if via > before else -1.0
+        passes = (via - before) * way > 0 and (after - via) * way > 0 \
+            and not (planned and planned[col] * way <= 0)
+        if passes and (inside[n - 1] or inside[n]):
+            free.append(n)
+    for _ in range(FIT_SWEEPS if free else 0):
+        moved = 0.0
+        for n in free:
+            # each point beside the knot: (its distance from the polyline, how much of the
+            # knot's shift moves the polyline there)
+            near = []
+            for t, x in inside[n - 1]:
+                w = (t - times[n - 1]) / (times[n] - times[n - 1])
+                near.append((ys[n - 1] + (ys[n] - ys[n - 1]) * w - x, w))
+            for t, x in inside[n]:
+                w = (times[n + 1] - t) / (times[n + 1] - times[n])
+                near.append((ys[n + 1] + (ys[n] - ys[n + 1]) * w - x, w))
+            # the knot's own point: it may leave it too
+            near.append((ys[n] - points[segments[n - 1].point].positions_steps[col], 1.0))
+            shift = _least_max_shift(near)
+            # the joint keeps its way: the knot moves no nearer a neighbour than a quarter of
+            # the way between them, or than its point lies
+            lo, hi = sorted((ys[n - 1], ys[n + 1]))
+            point = points[segments[n - 1].point].positions_steps[col]
+            quarter = (hi - lo) / 4
+            new = min(max(ys[n] + shift, min(point, lo + quarter)), max(point, hi - quarter))
+            moved = max(moved, abs(new - ys[n]))
+            ys[n] = new
+        if moved < FIT_DONE_STEPS:
+            break
+    return ys[1:]
+
+
+def _least_max_shift(near: list[tuple[float, float]]) -> float:
+    """The s that makes max |e + w s| over `near` [(e, w), w > 0] least: where the largest
+    rising term, max(e + w s), meets the largest falling one, max(-e - w s) (bisection: their
+    difference grows with s; |s| <= 2 max |e|, since the knot's own term has w = 1)."""
+    reach = 2 * max(abs(e) for e, _ in near)
+    lo, hi = -reach, reach
+    for _ in range(FIT_SEARCH):
+        s = 0.5 * (lo + hi)
+        if max(e + w * s for e, w in near) < max(-e - w * s for e, w in near):
+            lo = s
+        else:
+            hi = s
+    return 0.5 * (lo + hi)
 
 
 def cruise(x0: float, u0: float, via: float, target: float, left_s: float, a: float,

@@ -66,8 +66,9 @@ class AxisMove:
     velocity_steps_s: float
     acceleration_steps_s2: float
     start_delay_s: float = 0.0
-    # A velocity-continuous move (None: rest to rest): the point it passes at the segment's end
-    # (target_steps is then the next point where the joint goes on the same way), and the
+    # A velocity-continuous move (None: rest to rest): where it passes at the segment's end
+    # (the point, or near it where points were merged: continuous.fitted_vias; target_steps is
+    # then where it passes the next segment's end, on the same way), and the
     # planned position and velocity (signed) of the joint when it takes effect, start_delay_s
     # (< 0: before the segment starts) into the segment.
     via_steps: float | None = None

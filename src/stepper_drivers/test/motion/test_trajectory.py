@@ -220,12 +220,11 @@ def test_a_continuous_joint_passes_its_points_on_time_and_at_speed():
     for n, seg in enumerate(segs):
         (m,) = seg.moves
         planned = traj.points[seg.point].velocities_steps_s[0]
-        assert m.via_steps == traj.points[seg.point].positions_steps[0]
         if n < len(segs) - 1:
-            # towards the next point: the drive never brakes for this one
-            assert m.target_steps == traj.points[segs[n + 1].point].positions_steps[0]
+            # towards where it passes the next segment's end: it never brakes for this one
+            assert m.target_steps == segs[n + 1].moves[0].via_steps
         else:
-            assert m.target_steps == 326.0                    # the end: at rest on it
+            assert m.target_steps == m.via_steps == 326.0     # the end: at rest on it
         if n:
             assert m.start_delay_s < 0                        # before its segment starts
         pos, vel = planned_at(segs, {'a': 0.0}, seg.end_s)
@@ -238,6 +237,28 @@ def test_a_continuous_joint_passes_its_points_on_time_and_at_speed():
         s = t / 3.0
         want = 326.0 * (30 * s ** 2 - 60 * s ** 3 + 30 * s ** 4) / 3.0
         assert planned_at(segs, {'a': 0.0}, t)[1]['a'] >= 0.25 * want, t
+
+
+def test_merged_points_are_passed_nearer_than_by_chords_through_the_points():
+    """Where points are merged, the knots leave the points: the plan passes them on either
+    side, its largest distance well under that of the chords through the points."""
+    traj = quintic_line(['a'], [326.0], 3.0, 0.05)
+    segs = plan(traj, {'a': 0.0}, {'a': RD4}, min_segment_s=0.36, continuous={'a'})
+    at = [p.positions_steps[0] for p in traj.points]
+    knots = [(0.0, 0.0)] + [(s.end_s, at[s.point]) for s in segs]
+
+    def chords(t):
+        for (t0, x0), (t1, x1) in zip(knots, knots[1:]):
+            if t <= t1:
+                return x0 + (x1 - x0) * (t - t0) / (t1 - t0)
+        return knots[-1][1]
+
+    off = [planned_at(segs, {'a': 0.0}, p.time_s)[0]['a'] - x
+           for p, x in zip(traj.points, at)]
+    through = max(abs(chords(p.time_s) - x) for p, x in zip(traj.points, at))
+    assert max(off) > 0.5 and min(off) < -0.5, off              # ahead and behind
+    assert max(map(abs, off)) < 0.75 * through, (max(map(abs, off)), through)
+    assert segs[-1].moves[0].via_steps == 326.0
 
 
 def test_rest_to_rest_segments_stop_at_every_point():
