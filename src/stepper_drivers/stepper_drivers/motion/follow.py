@@ -525,16 +525,16 @@ class Follower:
         each of its axes, times SEGMENT_MARGIN (CONTINUOUS_SEGMENT_MARGIN where every axis of
         the bus follows velocity-continuously). A move's need is its measured lead (what it
         takes before the drive runs), or the drive's estimate before the first; for a
-        velocity-continuous axis, no less than the time its steps take on the bus in all
-        (Axis.move_busy_s: a set-point handshake after the motion frame too). Streamed
-        (interpolated) axes take no moves."""
+        velocity-continuous axis, the time its steps take on the bus in all (Axis.move_busy_s:
+        a set-point handshake after the motion frame too), not its lead: that holds the waits
+        for the other axes' moves and the polls, which the sum and the margin count already.
+        Streamed (interpolated) axes take no moves."""
         per_bus: dict[int, float] = {}
         stepwise: set[int] = set()
         for joint in joints:
             axis = self.axes[joint]
             if not axis.interpolated:
-                need = max(axis.move_cost_s(), axis.move_busy_s()) if axis.continuous \
-                    else axis.move_cost_s()
+                need = axis.move_busy_s() if axis.continuous else axis.move_cost_s()
                 per_bus[id(axis.bus_owner)] = per_bus.get(id(axis.bus_owner), 0.0) + need
                 if not axis.continuous:
                     stepwise.add(id(axis.bus_owner))
