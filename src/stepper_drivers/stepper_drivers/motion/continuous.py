@@ -17,7 +17,9 @@ acceleration of the joint (the points' accelerations, or their positions' second
 where that is steeper; a drive that runs start-stop at a speed (X-PLUS MT) jumps. A joint whose
 planned velocity is zero at a point, or that turns or holds there, brakes to rest on it, as the
 rest-to-rest segments do. Where points were merged, the segments' ends are passed where the
-polyline of the segments runs nearest the merged points (`fitted_vias`), not on the points.
+polyline of the segments runs nearest the merged points (`fitted_vias`), not on the points. A
+joint whose moves go out behind other joints' on its bus runs its segments that much later
+(`shifts_s`, AxisMove.shift_s).
 
 Not here: the trajectory types, the checks, the merging of points into segments and the path
 bound (trajectory.py, which also plans the rest-to-rest joints), nor the profile arithmetic
@@ -26,6 +28,7 @@ bound (trajectory.py, which also plans the rest-to-rest joints), nor the profile
 
 from __future__ import annotations
 
+import bisect
 import dataclasses
 
 from .move_profile import motion_state, ramps
@@ -77,15 +80,25 @@ def ramp_acceleration(traj: Trajectory, joint: str, lim: JointLimits,
 
 def continuous_moves(traj: Trajectory, segments: list[Segment], start_steps: dict[str, float],
                      limits: dict[str, JointLimits], joints: list[str],
-                     start_velocity: dict[str, float]) -> list[Segment]:
+                     start_velocity: dict[str, float],
+                     shifts_s: dict[str, float] | None = None) -> list[Segment]:
     """The segments with velocity-continuous moves for `joints` (the module's docstring);
-    TrajectoryError where a joint cannot pass a point in time within its max_velocity."""
+    TrajectoryError where a joint cannot pass a point in time within its max_velocity.
+
+    `shifts_s` (joint: s): the joints of one bus take their moves one after the other, so each
+    runs its segments this much later (< 0: earlier; AxisMove.shift_s; the first segment
+    begins no earlier than it does), passing where the trajectory has it then: each move's
+    instant is where the bus can send it, not one it waits for the other joints' moves to
+    meet."""
     moves: list[dict[str, AxisMove]] = [{m.joint: m for m in seg.moves} for seg in segments]
     for joint in joints:
         col = traj.joints.index(joint)
         lim = limits[joint]
         a = ramp_acceleration(traj, joint, lim, start_steps[joint])
-        vias = fitted_vias(traj, segments, col, start_steps[joint])
+        shift = (shifts_s or {}).get(joint, 0.0)
+        ends = [seg.end_s + shift for seg in segments]
+        starts = [max(segments[0].start_s, segments[0].start_s + shift)] + ends[:-1]
+        vias = fitted_vias(traj, segments, col, start_steps[joint], [starts[0]] + ends)
         x, u = start_steps[joint], start_velocity.get(joint, 0.0)
         # the move in effect: (when, entry position, entry velocity, target, cruise)
         effect: AxisMove | None = None          # the move in effect, since effect_s
@@ -101,28 +114,29 @@ def continuous_moves(traj: Trajectory, segments: list[Segment], start_steps: dic
             planned = traj.points[seg.point].velocities_steps_s
             stops = (after - via) * way <= 0 or (bool(planned) and planned[col] * way <= 0)
             target = via if stops else after
-            average = (via - before) / (seg.end_s - seg.start_s)
-            if effect is None:
-                at, x_e, u_e = seg.start_s, x, u
+            begin, end = starts[n], ends[n]
+            average = (via - before) / (end - begin)
+            if effect is None:       # (a joint taken over at speed goes on until its shift)
+                at, x_e, u_e = begin, x + u * (begin - segments[0].start_s), u
             elif effect.target_steps == effect.via_steps:
-                at, x_e, u_e = seg.start_s, effect.via_steps, 0.0    # at rest on its point
+                at, x_e, u_e = begin, effect.via_steps, 0.0    # at rest on its point
             else:
                 t_e = effect_s
-                _, u_now = effect.state(seg.start_s - t_e)
+                _, u_now = effect.state(begin - t_e)
                 change = a if abs(average) > abs(u_now) else deceleration(a, lim)
                 quick = ramps(change, max(abs(average), abs(u_now)), lim.start_stop_steps_s)
                 half = 0.0 if u_now == 0.0 else abs(average - u_now) / (2 * quick)
-                at = max(t_e, seg.start_s - half)
+                at = max(t_e, begin - half)
                 x_e, u_e = effect.state(at - t_e)
             if (via - x_e) * way <= 0:       # there already (a fraction of a step): cruise on
                 found = (max(abs(average), lim.min_velocity_steps_s, 1e-3), a, a)
             else:
-                found = cruise(x_e, u_e, via, target, seg.end_s - at, a, lim)
+                found = cruise(x_e, u_e, via, target, end - at, a, lim)
             if found is None and effect is None and u_e != 0.0:
                 # taking over a joint at speed that cannot turn in time: planned from rest (it
                 # arrives late; the goal tolerance decides), as a rest-to-rest segment is
                 u_e = 0.0
-                found = cruise(x_e, u_e, via, target, seg.end_s - at, a, lim)
+                found = cruise(x_e, u_e, via, target, end - at, a, lim)
             if found is None:
                 u_ = lim.steps_per_unit
                 raise TrajectoryError(
@@ -132,30 +146,34 @@ def continuous_moves(traj: Trajectory, segments: list[Segment], start_steps: dic
                     f'({lim.max_velocity_steps_s / u_:.4g} {lim.unit}/s)')
             v, ramp, dec = found
             effect = moves[n][joint] = AxisMove(joint, target, v, ramp, at - seg.start_s, via,
-                                                x_e, u_e, lim.start_stop_steps_s, dec)
+                                                x_e, u_e, lim.start_stop_steps_s, dec,
+                                                shift_s=shift)
             effect_s = at
             before = via
     return [dataclasses.replace(seg, moves=tuple(ms[j] for j in traj.joints if j in ms))
             for seg, ms in zip(segments, moves)]
 
 
-def fitted_vias(traj: Trajectory, segments: list[Segment], col: int, start: float
-                ) -> list[float]:
-    """Where the joint passes each segment's end: the polyline through these positions (its
-    speed steps from one segment's average to the next around each) passes the points merged
-    into the segments as near as it can (least largest distance, FIT_SWEEPS sweeps of one
-    knot at a time). Through the points themselves a merged segment's chord lies on one side
-    of a curved plan, up to an eighth of its acceleration times the segment's time squared;
-    moved off them, half that on either side. Kept on its point: the last segment's end, and
-    every end where the joint stops, turns or holds (a point where it rests is passed at rest,
-    on time) or where no point was merged into a segment beside it."""
+def fitted_vias(traj: Trajectory, segments: list[Segment], col: int, start: float,
+                times: list[float] | None = None) -> list[float]:
+    """Where the joint passes each segment's end (at `times`[1:], its segments' ends shifted
+    as continuous_moves runs them; `times`[0] its first segment's start): the
+    polyline through these positions (its speed steps from one segment's average to the next
+    around each) passes the trajectory's points as near as it can (least largest distance,
+    FIT_SWEEPS sweeps of one knot at a time). Through the points themselves a merged
+    segment's chord lies on one side of a curved plan, up to an eighth of its acceleration
+    times the segment's time squared; moved off them, half that on either side. On the
+    trajectory (its points, linear between them, at the knots' times) and not moved: the
+    last segment's end, every end where the joint stops, turns or holds (a point where it
+    rests is passed at rest) and, where the knots are the points' times, every end with no point
+    merged into a segment beside it (the polyline is the points' own there)."""
     points = traj.points
-    times = [segments[0].start_s] + [seg.end_s for seg in segments]
+    if times is None:
+        times = [segments[0].start_s] + [seg.end_s for seg in segments]
     ys = [start] + [points[seg.point].positions_steps[col] for seg in segments]
     # the points between two knots, (time, position), per segment
-    inside = [[(points[k].time_s, points[k].positions_steps[col])
-               for k in range(segments[n - 1].point + 1 if n else 0, seg.point)
-               if points[k].time_s > seg.start_s] for n, seg in enumerate(segments)]
+    inside = [[(p.time_s, p.positions_steps[col]) for p in points
+               if times[n] < p.time_s < times[n + 1]] for n in range(len(segments))]
     free = []
     for n in range(1, len(segments)):
         before, via, after = ys[n - 1], ys[n], ys[n + 1]
@@ -165,6 +183,9 @@ def fitted_vias(traj: Trajectory, segments: list[Segment], col: int, start: floa
             and not (planned and planned[col] * way <= 0)
         if passes and (inside[n - 1] or inside[n]):
             free.append(n)
+    on_knot = list(ys)
+    for n in free:
+        on_knot[n] = ys[n] = _at(traj, col, times[n])
     for _ in range(FIT_SWEEPS if free else 0):
         moved = 0.0
         for n in free:
@@ -177,20 +198,34 @@ def fitted_vias(traj: Trajectory, segments: list[Segment], col: int, start: floa
             for t, x in inside[n]:
                 w = (times[n + 1] - t) / (times[n + 1] - times[n])
                 near.append((ys[n + 1] + (ys[n] - ys[n + 1]) * w - x, w))
-            # the knot's own point: it may leave it too
-            near.append((ys[n] - points[segments[n - 1].point].positions_steps[col], 1.0))
+            # the trajectory at the knot: it may leave it too
+            near.append((ys[n] - on_knot[n], 1.0))
             shift = _least_max_shift(near)
             # the joint keeps its way: the knot moves no nearer a neighbour than a quarter of
-            # the way between them, or than its point lies
+            # the way between them, or than the trajectory at the knot lies
             lo, hi = sorted((ys[n - 1], ys[n + 1]))
-            point = points[segments[n - 1].point].positions_steps[col]
             quarter = (hi - lo) / 4
-            new = min(max(ys[n] + shift, min(point, lo + quarter)), max(point, hi - quarter))
+            new = min(max(ys[n] + shift, min(on_knot[n], lo + quarter)),
+                      max(on_knot[n], hi - quarter))
             moved = max(moved, abs(new - ys[n]))
             ys[n] = new
         if moved < FIT_DONE_STEPS:
             break
     return ys[1:]
+
+
+def _at(traj: Trajectory, col: int, t: float) -> float:
+    """The joint's position at trajectory time t: linear between the points, the first's
+    before them, the last's after them."""
+    points = traj.points
+    k = bisect.bisect_right([p.time_s for p in points], t)
+    if k == 0:
+        return points[0].positions_steps[col]
+    if k == len(points):
+        return points[-1].positions_steps[col]
+    a, b = points[k - 1], points[k]
+    return a.positions_steps[col] + (b.positions_steps[col] - a.positions_steps[col]) * \
+        (t - a.time_s) / (b.time_s - a.time_s)
 
 
 def _least_max_shift(near: list[tuple[float, float]]) -> float:

@@ -516,8 +516,11 @@ class Follower:
 
     def move_times_s(self, joints) -> dict[str, tuple[object, float]]:
         """Per joint moved by moves (not streamed): its bus and what a move costs there (the
-        measured time, or the drive's estimate before the first)."""
-        return {j: (id(self.axes[j].bus_owner), self.axes[j].move_cost_s())
+        measured time, or the drive's estimate before the first): its lead, or for a
+        continuous axis its time on the bus (Axis.move_busy_s: its moves go out one after the
+        other's, trajectory._shifts)."""
+        return {j: (id(self.axes[j].bus_owner), self.axes[j].move_busy_s()
+                    if self.axes[j].continuous else self.axes[j].move_cost_s())
                 for j in joints if not self.axes[j].interpolated}
 
     def min_segment_s(self, joints) -> float:

@@ -320,7 +320,7 @@ class MoveJobs:
     def _move_job(self, axis: Axis, move, from_steps: float, seg_t: float, end_t: float
                   ) -> Callable:
         if move.via_steps is not None:
-            return self._continuous_job(axis, move, seg_t, end_t)
+            return self._continuous_job(axis, move, seg_t, end_t + move.shift_s)
         clock = self.follower.clock
 
         def job():

@@ -76,6 +76,10 @@ class AxisMove:
     entry_velocity_steps_s: float = 0.0
     start_stop_steps_s: float = 0.0      # its drive's (JointLimits): no ramps at or below
     deceleration_steps_s2: float = 0.0   # a continuous move's; 0: acceleration_steps_s2
+    # A continuous move's joint runs its segments this much later (< 0: earlier) than the
+    # segments' times (its bus sends the joints' moves one after the other: trajectory._shifts):
+    # it passes via_steps shift_s after the segment's end
+    shift_s: float = 0.0
     # A chain of constant-rate runs (capabilities.Chaining; () otherwise): (trajectory time,
     # position) where each run ends, the last (the segment's end, target_steps); the first
     # runs from where the joint is start_delay_s into the segment

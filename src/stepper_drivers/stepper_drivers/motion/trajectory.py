@@ -227,7 +227,9 @@ def plan(traj: Trajectory, start_steps: dict[str, float], limits: dict[str, Join
 
     `move_times_s` (joint: (its bus, what a move costs there)): the moves of a segment go out
     at its start one after the other on each bus, so each axis starts later by the moves
-    before it and its own; its profile is planned for the time left then.
+    before it and its own; its profile is planned for the time left then. A continuous joint
+    runs its segments later by the moves of the continuous joints before it, centred
+    (`_shifts`).
 
     `continuous`: joints followed velocity-continuously (continuous.py), from
     `start_velocity_steps_s` (a trajectory that takes over from a running one; else at rest)."""
@@ -289,8 +291,26 @@ def plan(traj: Trajectory, start_steps: dict[str, float], limits: dict[str, Join
         # continuous.py imports this module's types as it loads: imported here, at the call,
         # so that the two do not import each other at module level
         segments = continuous_moves(traj, segments, start_steps, limits, cont,
-                                    start_velocity_steps_s or {})
+                                    start_velocity_steps_s or {}, _shifts(cont, lines))
     return bounded(traj, segments, start_steps, from_s, limits, tol, min_segment_s)
+
+
+def _shifts(cont: list[str], lines: dict[str, tuple[object, float]]) -> dict[str, float]:
+    """Per continuous joint, how much later (< 0: earlier) it runs its segments
+    (continuous_moves): the continuous joints of one bus take their moves one after the other
+    (in the trajectory's order), each the time on the bus of the moves before it later than the
+    first, and the instants are centred on the segments' (the first joint as early as the last
+    is late: each passes a point where its speed changes half as far off the plan as the last
+    one would alone)."""
+    sent: dict[object, float] = {}
+    after: dict[str, float] = {}
+    for joint in cont:
+        if joint in lines:
+            bus, cost_s = lines[joint]
+            after[joint] = sent.get(bus, 0.0)
+            sent[bus] = after[joint] + cost_s
+    last = {lines[j][0]: after[j] for j in after}          # the bus's last joint's
+    return {j: t - last[lines[j][0]] / 2 for j, t in after.items()}
 
 
 def check_positions(joints: Sequence[str], due: Sequence[tuple[int, Point]],

@@ -261,6 +261,33 @@ def test_merged_points_are_passed_nearer_than_by_chords_through_the_points():
     assert segs[-1].moves[0].via_steps == 326.0
 
 
+def test_a_continuous_joint_behind_another_on_its_bus_runs_its_segments_later():
+    """Two continuous joints on one serial line, a move 70 ms of it each: the second joint's
+    moves go out after the first's, so its segments run 70 ms after the first's (shift_s),
+    centred on the segments' (35 ms early, 35 ms late; the first segment begins no earlier),
+    each passing where the trajectory has it then, within a step or two of every point.
+    Planned at the segments' own instants, the second joint's moves met the first's on the
+    line and went out up to 85 ms off their instants (2.7-3.4 % of its travel)."""
+    traj = quintic_line(['a', 'b'], [326.0, 163.0], 3.0, 0.05)
+    lines = {'a': ('line', 0.07), 'b': ('line', 0.07)}
+    start = {'a': 0.0, 'b': 0.0}
+    segs = plan(traj, start, {'a': RD4, 'b': RD4}, min_segment_s=0.28, continuous={'a', 'b'},
+                move_times_s=lines)
+    assert len(segs) > 5
+    for n, seg in enumerate(segs):
+        a, b = seg.moves
+        assert (a.shift_s, b.shift_s) == (pytest.approx(-0.035), pytest.approx(0.035))
+        assert b.start_delay_s - a.start_delay_s == pytest.approx(0.035 if n == 0 else 0.07,
+                                                                  abs=0.01)
+        for m in (a, b):
+            assert planned_at(segs, start, seg.end_s + m.shift_s)[0][m.joint] == \
+                pytest.approx(m.via_steps, abs=0.5)
+    for p in traj.points:
+        pos = planned_at(segs, start, p.time_s)[0]
+        assert pos['a'] == pytest.approx(p.positions_steps[0], abs=2.0), p.time_s
+        assert pos['b'] == pytest.approx(p.positions_steps[1], abs=2.0), p.time_s
+
+
 def test_rest_to_rest_segments_stop_at_every_point():
     """The same trajectory planned for a drive that takes no target on the way (X-MIND K):
     standing at the end of every segment."""
