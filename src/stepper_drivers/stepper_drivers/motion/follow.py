@@ -435,13 +435,14 @@ class Follower:
         self._streams = Streams(self, self._lock)
 
     def follow(self, traj: Trajectory, start_t: float | None = None,
-               tol: Tolerances = _NO_TOLERANCES) -> Run:
-        """Plan and start `traj` at monotonic start_t (None: now); TrajectoryError (nothing
-        moves) when it cannot be followed."""
+               tol: Tolerances = _NO_TOLERANCES, received_t: float | None = None) -> Run:
+        """Plan and start `traj` at monotonic start_t (None: now, or when it was received:
+        `received_t`, _start_for_now); TrajectoryError (nothing moves) when it cannot be
+        followed."""
         with self._lock:
             old = self.current
             start_t, take_over, start_steps, segments, min_segment_s = self._plan(
-                traj, start_t, tol, old)
+                traj, start_t, tol, old, received_t=received_t)
             run = Run(self, traj, start_t, start_steps, segments, tol, min_segment_s)
             if old is not None and not old.done.done():
                 old.replace_at(take_over)
@@ -455,22 +456,33 @@ class Follower:
         return run
 
     def check(self, traj: Trajectory, start_t: float | None = None,
-              tol: Tolerances = _NO_TOLERANCES) -> None:
+              tol: Tolerances = _NO_TOLERANCES, received_t: float | None = None) -> None:
         """What follow() would refuse if it were called now, without starting anything (the
         action's goal callback): the TrajectoryError it would raise. (A chain is planned only
         where the segments are refused: it is taken only within the bound, so it changes no
         verdict.)"""
         with self._lock:
-            self._plan(traj, start_t, tol, self.current, decide=False)
+            self._plan(traj, start_t, tol, self.current, decide=False, received_t=received_t)
+
+    @staticmethod
+    def _start_for_now(traj: Trajectory, received_t: float | None, now: float) -> float:
+        """When a trajectory without a start time (a zero header stamp) starts: when it was
+        received (JointTrajectoryController starts one at its first update after that), so the
+        time the node takes to check and plan it is made up by its first moves, not kept by the
+        joints as a lag to the end; now where that would leave a point of it in the past."""
+        first = next((p.time_s for p in traj.points if p.time_s > 0), None)
+        return received_t if received_t is not None and first is not None \
+            and now - received_t < first else now
 
     def _plan(self, traj: Trajectory, start_t: float | None, tol: Tolerances,
-              old: Run | None, decide: bool = True
+              old: Run | None, decide: bool = True, received_t: float | None = None
               ) -> tuple[float, float, dict[str, float], list[Segment], float]:
         """(start_t, take-over time, start positions, segments, least segment duration) of
         `traj` planned now, taking over from `old` where it runs; `decide` False: the chain
         only where the segments are refused."""
         now = self.clock()
-        start_t = now if start_t is None else start_t
+        if start_t is None:
+            start_t = self._start_for_now(traj, received_t, now)
         if traj.points and start_t + traj.points[-1].time_s < now:
             ago = now - start_t - traj.points[-1].time_s
             raise GoalError(OLD_HEADER_TIMESTAMP, f'the trajectory ended {ago:.3f} s ago '

@@ -50,6 +50,29 @@ CODE_NAMES = {INVALID_GOAL: 'INVALID_GOAL', INVALID_JOINTS: 'INVALID_JOINTS',
               OLD_HEADER_TIMESTAMP: 'OLD_HEADER_TIMESTAMP'}
 
 
+def check_goal(goal) -> None:
+    """What no node here can take: multi-DOF joints and their component tolerances."""
+    multi = goal.multi_dof_trajectory
+    if multi.joint_names or multi.points:
+        raise GoalError(INVALID_GOAL, f'multi_dof_trajectory (joints '
+                        f'{list(multi.joint_names)}, {len(multi.points)} points): these '
+                        'drives are single-DOF joints (revolute or prismatic); send them in '
+                        'trajectory')
+    for where in ('component_path_tolerance', 'component_goal_tolerance'):
+        items = getattr(goal, where)
+        if items:
+            raise GoalError(INVALID_GOAL, f'{where} ({[c.joint_name for c in items]}): '
+                            'component tolerances apply to multi-DOF joints, and this node '
+                            'drives none')
+
+
+def result_code(error: TrajectoryError) -> int:
+    """The result code of a refusal: GoalError carries it; motion/trajectory.py's refusals
+    (times, values, limits, segments, path tolerance of merged points) are all
+    INVALID_GOAL."""
+    return error.code if isinstance(error, GoalError) else INVALID_GOAL
+
+
 class TrajectoryHost(JobAwaiter, Protocol):
     """What the trajectory interface needs of its node (node.DriveNode): its joints and bus
     owners, whether it takes commands, its callback groups and QoS, the awaiting of owner-thread
@@ -78,6 +101,8 @@ class TrajectoryInterface:
         self.follower = Follower({})
         # goal id -> the run of that goal, while its execute callback awaits it
         self._runs: dict[bytes, Run] = {}
+        # accepted goals not yet executed: id(goal request) -> (it, when it was received)
+        self._received: dict[int, tuple[object, float]] = {}
         node.create_subscription(JointTrajectory, '~/joint_trajectory', self.on_trajectory,
                                  node.command_qos, callback_group=node.cmd_group)
 
@@ -211,9 +236,12 @@ class TrajectoryInterface:
         self._check_limits(traj, start_t)
         return traj, start_t
 
-    def _start(self, traj: Trajectory, start_t: float | None, tol: Tolerances) -> Run:
+    def _start(self, traj: Trajectory, start_t: float | None, tol: Tolerances,
+               received_t: float) -> Run:
+        """Follow `traj`; a zero stamp (start_t None) starts it when it was received
+        (Follower._start_for_now)."""
         self.follower.axes = self._axes()
-        run = self.follower.follow(traj, start_t, tol)
+        run = self.follower.follow(traj, start_t, tol, received_t=received_t)
         merged = run.merge_summary()
         if merged:
             self.node.log.info(f'trajectory of {list(traj.joints)}: {merged}')
@@ -221,6 +249,7 @@ class TrajectoryInterface:
 
     # ---------------------------------------------------------------------------------- topic
     def on_trajectory(self, msg: JointTrajectory) -> None:
+        received_t = time.monotonic()
         if not msg.points:
             self.follower.stop('empty trajectory on joint_trajectory')
             self.node.log.info('joint_trajectory: empty trajectory: stopping')
@@ -228,7 +257,7 @@ class TrajectoryInterface:
         try:
             traj, start_t = self._prepare(msg)
             run = self._start(traj, start_t, Tolerances(path_bound_steps=self._bounds(
-                traj.joints)))
+                traj.joints)), received_t)
         except TrajectoryError as e:
             self.node.log.warning(f'joint_trajectory refused: {e}')
             return
@@ -324,22 +353,6 @@ class TrajectoryInterface:
             path_velocity_steps_s={j: v for j, v in out['path_v'].items() if v is not None},
             goal_velocity_steps_s=out['goal_v'])
 
-    @staticmethod
-    def _check_goal(goal) -> None:
-        """What no node here can take: multi-DOF joints and their component tolerances."""
-        multi = goal.multi_dof_trajectory
-        if multi.joint_names or multi.points:
-            raise GoalError(INVALID_GOAL, f'multi_dof_trajectory (joints '
-                            f'{list(multi.joint_names)}, {len(multi.points)} points): these '
-                            'drives are single-DOF joints (revolute or prismatic); send them in '
-                            'trajectory')
-        for where in ('component_path_tolerance', 'component_goal_tolerance'):
-            items = getattr(goal, where)
-            if items:
-                raise GoalError(INVALID_GOAL, f'{where} ({[c.joint_name for c in items]}): '
-                                'component tolerances apply to multi-DOF joints, and this node '
-                                'drives none')
-
     def _goal(self, goal) -> tuple[Trajectory, float | None, Tolerances]:
         """A goal's trajectory in steps, its start time and its tolerances, checked as far as
         the node can before it plans; GoalError with the result code of the first problem (or
@@ -348,30 +361,26 @@ class TrajectoryInterface:
         if not traj.points:
             raise GoalError(INVALID_GOAL, 'empty trajectory (no points): nothing to follow (to '
                             'stop a running goal, cancel it)')
-        self._check_goal(goal)
+        check_goal(goal)
         return traj, start_t, self._tolerances(goal, traj.joints)
-
-    @staticmethod
-    def _code(error: TrajectoryError) -> int:
-        """The result code of a refusal: GoalError carries it; motion/trajectory.py's refusals
-        (times, values, limits, segments, path tolerance of merged points) are all
-        INVALID_GOAL."""
-        return error.code if isinstance(error, GoalError) else INVALID_GOAL
 
     def on_goal(self, goal) -> GoalResponse:
         """The goal callback (executor thread): a goal the node cannot take now is REJECTED,
         as JointTrajectoryController does (MoveIt then cancels the parts of its plan it sent
         to other controllers); the reason goes to the log, a rejection carries none. Planned
         too (Follower.check): a segment beyond a joint's limits or tolerances is known now."""
+        received_t = time.monotonic()
         try:
             traj, start_t, tol = self._goal(goal)
             self.follower.axes = self._axes()
-            self.follower.check(traj, start_t, tol)
+            self.follower.check(traj, start_t, tol, received_t=received_t)
         except TrajectoryError as e:
-            code = self._code(e)
+            code = result_code(e)
             self.node.log.warning(f'follow_joint_trajectory: goal rejected '
                                   f'({CODE_NAMES.get(code, code)}): {e}')
             return GoalResponse.REJECT
+        # the execute callback starts it from here (the goal request is the handle's request)
+        self._received[id(goal)] = (goal, received_t)
         return GoalResponse.ACCEPT
 
     def on_cancel(self, goal_handle) -> CancelResponse:
@@ -386,8 +395,15 @@ class TrajectoryInterface:
                                'stopping')
         return CancelResponse.ACCEPT
 
+    def _received_t(self, goal) -> float:
+        """When the goal callback received `goal` (now where it did not: a goal the callback
+        never saw)."""
+        entry = self._received.pop(id(goal), None)
+        return entry[1] if entry is not None and entry[0] is goal else time.monotonic()
+
     async def execute(self, goal_handle):
         result = FollowJointTrajectory.Result()
+        received_t = self._received_t(goal_handle.request)
         if goal_handle.is_cancel_requested:
             goal_handle.canceled()
             result.error_string = 'canceled before it started'
@@ -395,10 +411,10 @@ class TrajectoryInterface:
         try:
             # checked again: a drive can have faulted since the goal callback
             traj, start_t, tol = self._goal(goal_handle.request)
-            run = self._start(traj, start_t, tol)
+            run = self._start(traj, start_t, tol, received_t)
         except TrajectoryError as e:
             goal_handle.abort()
-            result.error_code, result.error_string = self._code(e), str(e)
+            result.error_code, result.error_string = result_code(e), str(e)
             self.node.log.warning(f'follow_joint_trajectory refused: {e}')
             return result
         key = bytes(goal_handle.goal_id.uuid)

@@ -251,6 +251,26 @@ def test_a_continuous_axis_counts_its_moves_whole_time_on_the_bus():
     assert Follower(stepwise).min_segment_s(JOINTS) == pytest.approx(0.020 * SEGMENT_MARGIN)
 
 
+def test_a_trajectory_for_now_starts_when_it_was_received(rig):
+    """A trajectory with a zero header stamp runs from when it was received (received_t), as
+    JointTrajectoryController starts it at its first update after: the time the node takes to
+    check and plan it is made up by its first moves, not kept by the joints as a lag to the
+    end. One received longer ago than its first point starts now: no point is dropped."""
+    sim, bus_owner, follower = rig
+    traj = quintic_line(JOINTS, [4000.0, 2000.0], 1.0, 0.05)
+    received = time.monotonic()
+    follower.check(traj, received_t=received)                # the goal callback's plan
+    run = follower.follow(traj, received_t=received)
+    assert run.start_t == received
+    assert run.done.result(5.0).status == 'succeeded'
+    back = build(JOINTS, [0.01, 0.5], [[3990, 1995], [0, 0]], known=JOINTS)
+    asked = time.monotonic()
+    run = follower.follow(back, received_t=asked - 0.02)     # its first point 10 ms in
+    assert run.start_t >= asked
+    assert run.done.result(5.0).status == 'succeeded'
+    wait_for(lambda: abs(true_steps(sim, 'j1')) <= 1, 2.0, 'j1 back at 0')
+
+
 def test_a_dense_plan_is_merged_into_what_the_polls_leave_of_the_connection(strict_rig):
     """Points every 50 ms, on a connection where the polls take about 70 % (three FC03 a drive
     at 50 Hz, 2 ms replies) and a move five transactions or more, most of them after its
