@@ -28,7 +28,6 @@ bound (trajectory.py, which also plans the rest-to-rest joints), nor the profile
 
 from __future__ import annotations
 
-import bisect
 import dataclasses
 
 from .move_profile import motion_state, ramps
@@ -41,6 +40,7 @@ from .segments import (
     Segment,
     Trajectory,
     TrajectoryError,
+    sample,
 )
 
 # Velocity-continuous joints: ramps at PLAN_FRACTIONS[0] of the joint's max_acceleration, or at
@@ -98,7 +98,7 @@ def continuous_moves(traj: Trajectory, segments: list[Segment], start_steps: dic
         shift = (shifts_s or {}).get(joint, 0.0)
         ends = [seg.end_s + shift for seg in segments]
         starts = [max(segments[0].start_s, segments[0].start_s + shift)] + ends[:-1]
-        vias = fitted_vias(traj, segments, col, start_steps[joint], [starts[0]] + ends)
+        vias = fitted_vias(traj, segments, col, start_steps, [starts[0]] + ends)
         x, u = start_steps[joint], start_velocity.get(joint, 0.0)
         # the move in effect: (when, entry position, entry velocity, target, cruise)
         effect: AxisMove | None = None          # the move in effect, since effect_s
@@ -154,8 +154,8 @@ def continuous_moves(traj: Trajectory, segments: list[Segment], start_steps: dic
             for seg, ms in zip(segments, moves)]
 
 
-def fitted_vias(traj: Trajectory, segments: list[Segment], col: int, start: float,
-                times: list[float] | None = None) -> list[float]:
+def fitted_vias(traj: Trajectory, segments: list[Segment], col: int,
+                start_steps: dict[str, float], times: list[float]) -> list[float]:
     """Where the joint passes each segment's end (at `times`[1:], its segments' ends shifted
     as continuous_moves runs them; `times`[0] its first segment's start): the
     polyline through these positions (its speed steps from one segment's average to the next
@@ -163,14 +163,14 @@ def fitted_vias(traj: Trajectory, segments: list[Segment], col: int, start: floa
     FIT_SWEEPS sweeps of one knot at a time). Through the points themselves a merged
     segment's chord lies on one side of a curved plan, up to an eighth of its acceleration
     times the segment's time squared; moved off them, half that on either side. On the
-    trajectory (its points, linear between them, at the knots' times) and not moved: the
+    trajectory (`sample`: its points, linear between them, at the knots' times; `start_steps`
+    where the joints are before its first point) and not moved: the
     last segment's end, every end where the joint stops, turns or holds (a point where it
     rests is passed at rest) and, where the knots are the points' times, every end with no point
     merged into a segment beside it (the polyline is the points' own there)."""
     points = traj.points
-    if times is None:
-        times = [segments[0].start_s] + [seg.end_s for seg in segments]
-    ys = [start] + [points[seg.point].positions_steps[col] for seg in segments]
+    joint = traj.joints[col]
+    ys = [start_steps[joint]] + [points[seg.point].positions_steps[col] for seg in segments]
     # the points between two knots, (time, position), per segment
     inside = [[(p.time_s, p.positions_steps[col]) for p in points
                if times[n] < p.time_s < times[n + 1]] for n in range(len(segments))]
@@ -185,7 +185,7 @@ def fitted_vias(traj: Trajectory, segments: list[Segment], col: int, start: floa
             free.append(n)
     on_knot = list(ys)
     for n in free:
-        on_knot[n] = ys[n] = _at(traj, col, times[n])
+        on_knot[n] = ys[n] = sample(traj, start_steps, times[n])[joint]
     for _ in range(FIT_SWEEPS if free else 0):
         moved = 0.0
         for n in free:
@@ -212,20 +212,6 @@ def fitted_vias(traj: Trajectory, segments: list[Segment], col: int, start: floa
         if moved < FIT_DONE_STEPS:
             break
     return ys[1:]
-
-
-def _at(traj: Trajectory, col: int, t: float) -> float:
-    """The joint's position at trajectory time t: linear between the points, the first's
-    before them, the last's after them."""
-    points = traj.points
-    k = bisect.bisect_right([p.time_s for p in points], t)
-    if k == 0:
-        return points[0].positions_steps[col]
-    if k == len(points):
-        return points[-1].positions_steps[col]
-    a, b = points[k - 1], points[k]
-    return a.positions_steps[col] + (b.positions_steps[col] - a.positions_steps[col]) * \
-        (t - a.time_s) / (b.time_s - a.time_s)
 
 
 def _least_max_shift(near: list[tuple[float, float]]) -> float:

@@ -1,6 +1,7 @@
 """The plan's data: a trajectory in drive units (`Trajectory`, `Point`), a joint's limits
 (`JointLimits`), and the plan made of it (`Segment`, `AxisMove`), with the margins the planners
-share and the error they raise. No planning here: point-to-point planning is trajectory.py's,
+share and the error they raise, and the trajectory's own position at a time (`sample`). No
+planning here: point-to-point planning is trajectory.py's,
 velocity-continuous planning continuous.py's; the profile arithmetic is move_profile.py's."""
 
 from __future__ import annotations
@@ -120,3 +121,18 @@ class Segment:
     merged: int = 0
     # per joint, how far the plan passes from the points merged into this segment [steps]
     deviation_steps: tuple[tuple[str, float], ...] = ()
+
+
+def sample(traj: Trajectory, start_steps: dict[str, float], t_s: float) -> dict[str, float]:
+    """The desired position of each joint at trajectory time `t_s`: linear between the points
+    (the segments are followed point to point), `start_steps` before the first point, the last
+    point after the end."""
+    prev_t, prev = 0.0, [start_steps[j] for j in traj.joints]
+    for point in traj.points:
+        if t_s < point.time_s:
+            f = (t_s - prev_t) / (point.time_s - prev_t) if point.time_s > prev_t else 1.0
+            f = min(max(f, 0.0), 1.0)
+            return {j: p0 + f * (p1 - p0)
+                    for j, p0, p1 in zip(traj.joints, prev, point.positions_steps)}
+        prev_t, prev = point.time_s, list(point.positions_steps)
+    return dict(zip(traj.joints, prev))

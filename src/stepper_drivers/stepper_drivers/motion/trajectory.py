@@ -46,7 +46,7 @@ from typing import Collection, Sequence
 # (motion_state and along: other modules import them from here too)
 from .continuous import continuous_moves
 from .move_profile import along, along_velocity
-from .segments import (  # noqa: F401 - the plan's types: callers of the planner take them here
+from .segments import (  # noqa: F401 - the plan's types and sample: callers take them here
     EDGE_MARGIN,
     PLAN_FRACTIONS,
     AxisMove,
@@ -55,6 +55,7 @@ from .segments import (  # noqa: F401 - the plan's types: callers of the planner
     Segment,
     Trajectory,
     TrajectoryError,
+    sample,
 )
 
 
@@ -435,18 +436,3 @@ def _delayed(joints, profiles: dict[str, tuple[float, float]], targets: dict[str
             v, a = again
         moves.append(AxisMove(jn, targets[jn], v, a, delay))
     return tuple(moves)
-
-
-def sample(traj: Trajectory, start_steps: dict[str, float], t_s: float) -> dict[str, float]:
-    """The desired position of each joint at trajectory time `t_s`: linear between the points
-    (the segments are followed point to point), `start_steps` before the first point, the last
-    point after the end."""
-    prev_t, prev = 0.0, [start_steps[j] for j in traj.joints]
-    for point in traj.points:
-        if t_s < point.time_s:
-            f = (t_s - prev_t) / (point.time_s - prev_t) if point.time_s > prev_t else 1.0
-            f = min(max(f, 0.0), 1.0)
-            return {j: p0 + f * (p1 - p0)
-                    for j, p0, p1 in zip(traj.joints, prev, point.positions_steps)}
-        prev_t, prev = point.time_s, list(point.positions_steps)
-    return dict(zip(traj.joints, prev))
