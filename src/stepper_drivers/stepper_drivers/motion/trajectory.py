@@ -289,8 +289,6 @@ def plan(traj: Trajectory, start_steps: dict[str, float], limits: dict[str, Join
             i = j + 1
             break
     if cont and segments:
-        # continuous.py imports this module's types as it loads: imported here, at the call,
-        # so that the two do not import each other at module level
         segments = continuous_moves(traj, segments, start_steps, limits, cont,
                                     start_velocity_steps_s or {}, _shifts(cont, lines))
     return bounded(traj, segments, start_steps, from_s, limits, tol, min_segment_s)
